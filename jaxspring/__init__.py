@@ -1,0 +1,29 @@
+"""jaxspring: a differentiable mass-spring simulator in JAX, built for parameter identification.
+
+Example:
+    >>> import jaxspring as js
+    >>> scene = js.load_scene("cloth")
+    >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
+"""
+
+__version__ = "0.1.0"
+
+from ._errors import BlowUpError, FileFormatError, InputError, JaxspringError
+from ._files import load_trajectory, save_trajectory
+from ._forces import TERMS, safe_norm
+from ._integrators import INTEGRATORS, semi_implicit_euler
+from ._model import Model, check_params, make_model
+from ._params import Params
+from ._rollout import energy, final_state, rollout
+from ._scene import Scene, builtin_scenes, load_scene, scene_from_dict
+from ._stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup
+from ._state import State, Trajectory
+from ._topology import lattice_faces, lattice_positions, lattice_springs
+
+__all__ = [
+    "BlowUp", "BlowUpError", "FileFormatError", "INTEGRATORS", "InputError", "JaxspringError",
+    "Model", "Params", "Scene", "StabilityEstimate", "State", "TERMS", "Trajectory",
+    "builtin_scenes", "check_params", "energy", "estimate_stability", "final_state", "find_blowup",
+    "lattice_faces", "lattice_positions", "lattice_springs", "load_scene", "load_trajectory",
+    "make_model", "rollout", "safe_norm", "save_trajectory", "scene_from_dict", "semi_implicit_euler",
+]

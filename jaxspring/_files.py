@@ -1,0 +1,149 @@
+"""Trajectory files (HDF5, DESIGN.md section 4) with atomic writes."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+import h5py
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import FileFormatError, InputError
+from ._model import check_params, make_model
+from ._params import Params
+from ._scene import Scene
+from ._state import State, Trajectory
+
+TRAJECTORY_FORMAT = "jaxspring.trajectory"
+FORMAT_VERSION = 1
+
+
+@contextlib.contextmanager
+def atomic_path(path):
+    """Yield a temporary path beside `path`; rename it onto `path` only on success.
+
+    An interrupted write never leaves a half file under the final name.
+
+    Example:
+        >>> with atomic_path("out.h5") as tmp:
+        ...     write_everything(tmp)
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError("out", f"folder {str(folder)!r} does not exist", "create it or choose another path")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    os.close(fd)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
+    """Write a trajectory and the scene that made it to an HDF5 file, atomically.
+
+    Example:
+        >>> js.save_trajectory("cloth.h5", scene, traj)
+    """
+    from . import __version__
+
+    x = np.asarray(trajectory.x)
+    model = scene.model
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs.update(
+            format=TRAJECTORY_FORMAT, format_version=FORMAT_VERSION, scene=scene.name,
+            integrator=model.integrator, dt=model.dt, dtype=str(x.dtype), jaxspring_version=__version__,
+        )
+        group = f.create_group("params")
+        for name, value in scene.params.to_dict().items():
+            group.create_dataset(name, data=np.asarray(value))
+        topo = f.create_group("topology")
+        topo.create_dataset("springs", data=np.asarray(model.springs, dtype=np.int32))
+        topo.create_dataset("rest_length", data=np.asarray(model.rest_length))
+        topo.create_dataset("mass", data=np.asarray(model.mass))
+        topo.create_dataset("pinned", data=np.asarray(model.pinned, dtype=bool))
+        topo.create_dataset("drag", data=np.asarray(model.drag, dtype=bool))
+        if scene.faces is not None and len(scene.faces):
+            topo.create_dataset("faces", data=np.asarray(scene.faces, dtype=np.int32))
+        if scene.lattice_shape is not None:
+            topo.attrs["lattice_shape"] = np.asarray(scene.lattice_shape, dtype=np.int64)
+        traj = f.create_group("trajectory")
+        traj.create_dataset("t", data=np.asarray(trajectory.t))
+        traj.create_dataset("x", data=x)
+        traj.create_dataset("v", data=np.asarray(trajectory.v))
+
+
+def load_trajectory(path) -> tuple[Scene, Trajectory]:
+    """Read a trajectory file; returns (scene, trajectory).
+
+    The scene is rebuilt from the file (topology, params, integrator, dt) with
+    frame 0 as its state; a params entry absent from the file means that force
+    is not in the scene.
+
+    Example:
+        >>> scene, traj = js.load_trajectory("cloth.h5")
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"{path}: file not found; check the path")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise FileFormatError(f"{path}: not a readable HDF5 file (truncated or another format); re-create it with `jaxspring run`") from None
+    with f:
+        if f.attrs.get("format") != TRAJECTORY_FORMAT:
+            raise FileFormatError(
+                f"{path}: not a jaxspring trajectory (format={f.attrs.get('format')!r}); give a file written by `jaxspring run`"
+            )
+        version = int(f.attrs.get("format_version", -1))
+        if version != FORMAT_VERSION:
+            raise FileFormatError(f"{path}: format_version {version} is not supported; this jaxspring reads version {FORMAT_VERSION}")
+        try:
+            params = {name: np.asarray(f["params"][name][()]) for name in f["params"]}
+            topo = f["topology"]
+            springs = np.asarray(topo["springs"][()])
+            rest_length = np.asarray(topo["rest_length"][()])
+            mass = np.asarray(topo["mass"][()])
+            pinned = np.asarray(topo["pinned"][()], dtype=bool)
+            drag = np.asarray(topo["drag"][()], dtype=bool)
+            faces = np.asarray(topo["faces"][()]) if "faces" in topo else np.zeros((0, 3), dtype=np.int32)
+            lattice = tuple(int(n) for n in topo.attrs["lattice_shape"]) if "lattice_shape" in topo.attrs else None
+            t = np.asarray(f["trajectory/t"][()])
+            x = np.asarray(f["trajectory/x"][()])
+            v = np.asarray(f["trajectory/v"][()])
+            integrator, dt = str(f.attrs["integrator"]), float(f.attrs["dt"])
+            name = str(f.attrs.get("scene", path.stem))
+        except (KeyError, OSError) as exc:
+            raise FileFormatError(f"{path}: incomplete trajectory file ({exc}); re-create it with `jaxspring run`") from None
+    unknown = sorted(set(params) - set(Params.names()))
+    if unknown:
+        raise FileFormatError(f"{path}: unknown parameter {unknown[0]!r}; this file was written by a newer jaxspring")
+    if x.ndim != 3 or x.shape[2] != 3 or x.shape != v.shape or t.shape != (x.shape[0],) or x.shape[1] != mass.shape[0]:
+        raise FileFormatError(f"{path}: trajectory shapes disagree (x {x.shape}, v {v.shape}, t {t.shape}); re-create the file")
+    try:
+        model = make_model(
+            springs, mass, rest_length=rest_length, pinned=pinned, drag=drag,
+            gravity="gravity" in params, ground="kg" in params, integrator=integrator, dt=dt,
+        )
+        scene_params = check_params(model, Params(**{k: jnp.asarray(v, dtype=float) for k, v in params.items()}))
+    except InputError as exc:
+        raise exc.within(str(path)) from None
+    scene = Scene(
+        name=name, model=model, params=scene_params,
+        state=State(x=jnp.asarray(x[0], dtype=float), v=jnp.asarray(v[0], dtype=float)),
+        faces=faces, steps=int(x.shape[0] - 1) * _stride(t, dt), save_every=_stride(t, dt), lattice_shape=lattice,
+    )
+    trajectory = Trajectory(x=jnp.asarray(x), v=jnp.asarray(v), t=jnp.asarray(t))
+    return scene, trajectory
+
+
+def _stride(t, dt) -> int:
+    return max(1, int(round((t[1] - t[0]) / dt))) if t.shape[0] > 1 else 1

@@ -1,0 +1,237 @@
+"""The static structure of a scene: topology, force terms, integrator, dt."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import InputError
+from ._forces import TERM_PARAMETERS, TERMS
+from ._integrators import INTEGRATORS
+from ._params import NON_NEGATIVE, PARAMETER_INFO, Params
+from ._state import State
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Model:
+    """Topology (arrays) plus which force terms, integrator and dt (static).
+
+    Attributes:
+        springs: particle index pairs (a, b), int32, shape (S, 2).
+        rest_length: spring rest lengths L0 [m], shape (S,).
+        mass: particle masses [kg], shape (N,).
+        pinned: particles that never move, bool, shape (N,).
+        drag: particles that feel air resistance, bool, shape (N,).
+        terms: names of the force terms, e.g. ("springs", "gravity") (static).
+        integrator: name of the time integrator (static).
+        dt: time step [s] (static).
+
+    Build one with `make_model`; a loaded scene carries one as `scene.model`.
+    """
+
+    springs: jax.Array
+    rest_length: jax.Array
+    mass: jax.Array
+    pinned: jax.Array
+    drag: jax.Array
+    terms: tuple = dataclasses.field(metadata=dict(static=True), default=())
+    integrator: str = dataclasses.field(metadata=dict(static=True), default="semi_implicit_euler")
+    dt: float = dataclasses.field(metadata=dict(static=True), default=1e-3)
+
+    @property
+    def particle_count(self) -> int:
+        return int(self.mass.shape[0])
+
+    @property
+    def spring_count(self) -> int:
+        return int(self.springs.shape[0])
+
+    def has(self, term: str) -> bool:
+        return term in self.terms
+
+    def force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
+        """Total force on every particle [N], shape (N, 3)."""
+        total = jnp.zeros_like(x)
+        for name in self.terms:
+            total = total + TERMS[name].force(self, params, x, v)
+        return total
+
+    def energy(self, params: Params, state: State) -> jax.Array:
+        """Total mechanical energy [J]: kinetic plus every term's potential."""
+        kinetic = 0.5 * jnp.sum(self.mass[:, None] * state.v**2)
+        potential = sum(TERMS[name].energy(self, params, state.x) for name in self.terms)
+        return kinetic + potential
+
+    def step(self, params: Params, state: State) -> State:
+        """Advance one time step dt with the model's integrator."""
+        return INTEGRATORS[self.integrator](self, params, state)
+
+    def replace(self, **changes) -> Model:
+        return dataclasses.replace(self, **changes)
+
+    def required_parameters(self) -> tuple[str, ...]:
+        return tuple(p for term in self.terms for p in TERM_PARAMETERS[term])
+
+
+def make_model(
+    springs,
+    mass,
+    *,
+    rest_length=None,
+    positions=None,
+    pinned=None,
+    drag=None,
+    gravity: bool = True,
+    ground: bool = False,
+    integrator: str = "semi_implicit_euler",
+    dt: float = 1e-3,
+) -> Model:
+    """Build and validate a Model.
+
+    Args:
+        springs: index pairs, shape (S, 2).
+        mass: particle masses [kg], shape (N,) or a scalar together with `positions`.
+        rest_length: [m], shape (S,); default: spring lengths at `positions`.
+        positions: [m], shape (N, 3); needed when `rest_length` is omitted.
+        pinned: bool (N,) mask or a list of particle indices; default none.
+        drag: bool (N,) mask, True/False for all; default none. Any set flag adds the drag term.
+        gravity, ground: whether the scene has these terms.
+        integrator: one of `jaxspring.INTEGRATORS`.
+        dt: time step [s].
+
+    Example:
+        >>> model = make_model([[0, 1]], mass=[1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]],
+        ...                    pinned=[0], dt=1e-3)
+    """
+    springs_np = np.asarray(springs, dtype=np.int64).reshape(-1, 2)
+    if positions is not None:
+        positions = np.asarray(positions, dtype=float)
+    mass_np = np.asarray(mass, dtype=float)
+    if mass_np.ndim == 0:
+        if positions is None:
+            raise InputError("mass", "a scalar mass needs `positions` to know N", "pass one mass per particle")
+        mass_np = np.full(positions.shape[0], float(mass_np))
+    count = mass_np.shape[0]
+    _check_finite("mass", mass_np)
+    if np.any(mass_np <= 0):
+        raise InputError("mass", f"must be > 0, got {mass_np.min():g}", "give every particle a positive mass")
+    if springs_np.size and (springs_np.min() < 0 or springs_np.max() >= count):
+        bad = springs_np[(springs_np < 0) | (springs_np >= count)][0]
+        raise InputError("springs", f"particle index {bad} out of range 0..{count - 1}", "fix the spring's endpoints")
+    if np.any(springs_np[:, 0] == springs_np[:, 1]):
+        i = int(np.nonzero(springs_np[:, 0] == springs_np[:, 1])[0][0])
+        raise InputError("springs", f"spring {i} joins particle {springs_np[i, 0]} to itself", "remove it")
+    canonical = np.sort(springs_np, axis=1)
+    _, first, counts = np.unique(canonical, axis=0, return_index=True, return_counts=True)
+    if np.any(counts > 1):
+        pair = canonical[first[np.argmax(counts > 1)]]
+        raise InputError("springs", f"duplicate spring between particles {pair[0]} and {pair[1]}", "list each pair once")
+    if rest_length is None:
+        if positions is None:
+            raise InputError("rest_length", "missing and no positions to measure it from", "give rest lengths")
+        d = positions[springs_np[:, 1]] - positions[springs_np[:, 0]]
+        rest_np = np.sqrt(np.sum(d * d, axis=-1))
+    else:
+        rest_np = np.broadcast_to(np.asarray(rest_length, dtype=float), (springs_np.shape[0],)).copy()
+    _check_finite("rest_length", rest_np)
+    if np.any(rest_np < 0):
+        raise InputError("rest_length", "must be >= 0", "give non-negative rest lengths")
+    pinned_np = _mask("pinned", pinned, count, default=False)
+    drag_np = _mask("drag", drag, count, default=False)
+    if integrator not in INTEGRATORS:
+        raise InputError(
+            "integrator", f"unknown integrator {integrator!r}", f"use one of {', '.join(INTEGRATORS)}"
+        )
+    if not (np.isfinite(dt) and dt > 0):
+        raise InputError("dt", f"must be a finite number > 0, got {dt}", "set a positive time step")
+    terms = []
+    if springs_np.shape[0]:
+        terms.append("springs")
+    if drag_np.any():
+        terms.append("drag")
+    if gravity:
+        terms.append("gravity")
+    if ground:
+        terms.append("ground")
+    return Model(
+        springs=jnp.asarray(springs_np, dtype=jnp.int32),
+        rest_length=jnp.asarray(rest_np, dtype=float),
+        mass=jnp.asarray(mass_np, dtype=float),
+        pinned=jnp.asarray(pinned_np),
+        drag=jnp.asarray(drag_np),
+        terms=tuple(terms),
+        integrator=integrator,
+        dt=float(dt),
+    )
+
+
+def check_params(model: Model, params: Params) -> Params:
+    """Validate `params` against `model`: present where needed, absent otherwise, shapes, signs.
+
+    Returns the params with values cast to the default float dtype.
+    """
+    needed = set(model.required_parameters())
+    for name in Params.names():
+        value = getattr(params, name)
+        if name in needed and value is None:
+            raise InputError(name, f"the scene's {_needer(name)} term needs it", f"set {name}")
+        if name not in needed and value is not None:
+            raise InputError(
+                name,
+                f"the scene has no {_needer(name)} term",
+                f"remove {name}, or add the {_needer(name)} term to the scene",
+            )
+    changes = {}
+    for name in needed:
+        value = np.asarray(getattr(params, name), dtype=float)
+        _check_finite(name, value)
+        per = PARAMETER_INFO[name][2]
+        allowed = {(): "a scalar"}
+        if name == "gravity":
+            allowed = {(3,): "a 3-vector"}
+        elif per == "spring":
+            allowed[(model.spring_count,)] = f"one value per spring ({model.spring_count})"
+        elif per == "particle":
+            allowed[(model.particle_count,)] = f"one value per particle ({model.particle_count})"
+        if value.shape not in allowed:
+            raise InputError(
+                name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}"
+            )
+        if name in NON_NEGATIVE and np.any(value < 0):
+            raise InputError(name, f"must be >= 0, got {value.min():g}", f"set a non-negative {name}")
+        changes[name] = jnp.asarray(value, dtype=float)
+    return params.replace(**changes)
+
+
+def _needer(name: str) -> str:
+    for term, names in TERM_PARAMETERS.items():
+        if name in names:
+            return term
+    return name
+
+
+def _check_finite(name, value):
+    if not np.all(np.isfinite(value)):
+        raise InputError(name, "contains NaN or infinity", "give finite numbers")
+
+
+def _mask(name, value, count, default):
+    if value is None:
+        return np.full(count, default)
+    if isinstance(value, bool):
+        return np.full(count, value)
+    arr = np.asarray(value)
+    if arr.dtype == bool:
+        if arr.shape != (count,):
+            raise InputError(name, f"mask has shape {arr.shape}, expected ({count},)", "give one flag per particle")
+        return arr.copy()
+    idx = arr.astype(np.int64).reshape(-1)
+    if idx.size and (idx.min() < 0 or idx.max() >= count):
+        raise InputError(name, f"particle index out of range 0..{count - 1}", "fix the index list")
+    mask = np.zeros(count, dtype=bool)
+    mask[idx] = True
+    return mask

@@ -1,0 +1,197 @@
+"""Stable time-step estimates and blow-up detection."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._forces import TERMS
+from ._model import Model
+from ._params import Params
+from ._rollout import _simulate, energy
+from ._state import State, Trajectory
+
+ENERGY_GAIN_FACTOR = 10.0  # energy may not grow by more than this many energy scales
+
+
+@dataclasses.dataclass(frozen=True)
+class StabilityEstimate:
+    """Linearised-stability numbers for a scene at a state.
+
+    Attributes:
+        omega_max: largest angular frequency of the linearised system [rad/s].
+        damping_max: largest damping rate c of the linearised system [1/s].
+        dt_bound: largest stable dt of semi-implicit Euler [s]: solves
+            (omega dt)^2 + 2 c dt = 4, i.e. 2 / omega_max without damping.
+        dt: the model's dt [s].
+    """
+
+    omega_max: float
+    damping_max: float
+    dt_bound: float
+    dt: float
+
+    @property
+    def margin(self) -> float:
+        """dt_bound / dt: above 1 is stable, below 1 blows up."""
+        return self.dt_bound / self.dt
+
+    def describe(self) -> str:
+        return (
+            f"omega_max {self.omega_max:.4g} rad/s, stable dt <= {self.dt_bound:.4g} s "
+            f"(2/omega_max with damping), scene dt {self.dt:.4g} s, margin {self.margin:.3g}x"
+        )
+
+
+def estimate_stability(model: Model, params: Params, state: State, iterations: int = 100) -> StabilityEstimate:
+    """Estimate omega_max and the stable dt of semi-implicit Euler by power iteration.
+
+    Linearises the force at `state` (springs, ground contact assumed for every
+    particle when the scene has a ground, since a falling body will touch it)
+    and runs power iteration on M^-1/2 K M^-1/2 and M^-1/2 C M^-1/2, where
+    K = -dF/dx and C = -dF/dv, restricted to free particles.
+
+    Example:
+        >>> js.estimate_stability(scene.model, scene.params, scene.state).dt_bound
+    """
+    omega_sq, damping = _power_iterations(model, params, state, iterations)
+    omega_sq, damping = float(omega_sq), float(damping)
+    if model.has("ground"):
+        scale = 1.0 / np.asarray(model.mass)
+        omega_sq += float(np.max(np.asarray(params.kg) * scale))
+        damping += float(np.max(np.asarray(params.kgd) * scale))
+    omega_sq, damping = max(omega_sq, 0.0), max(damping, 0.0)
+    if omega_sq == 0.0:
+        bound = 2.0 / damping if damping > 0 else math.inf
+    else:
+        bound = (-damping + math.sqrt(damping**2 + 4.0 * omega_sq)) / omega_sq
+    return StabilityEstimate(math.sqrt(omega_sq), damping, bound, model.dt)
+
+
+@functools.partial(jax.jit, static_argnames=("iterations",))
+def _power_iterations(model, params, state, iterations):
+    free = (~model.pinned)[:, None]
+    root_inv_mass = (1.0 / jnp.sqrt(model.mass))[:, None]
+    # Without the ground term: contact is added as a bound by the caller.
+    linear_model = model.replace(terms=tuple(t for t in model.terms if t != "ground"))
+
+    def operator(wrt):
+        def apply(q):
+            q = q * root_inv_mass * free
+            if wrt == "x":
+                _, dforce = jax.jvp(lambda x: linear_model.force(params, x, state.v), (state.x,), (q,))
+            else:
+                _, dforce = jax.jvp(lambda v: linear_model.force(params, state.x, v), (state.v,), (q,))
+            return -dforce * root_inv_mass * free
+
+        return apply
+
+    def largest(apply):
+        q0 = jax.random.normal(jax.random.PRNGKey(0), state.x.shape, state.x.dtype) * free
+        q0 = q0 / jnp.maximum(jnp.linalg.norm(q0), 1e-30)
+
+        def body(_, q):
+            w = apply(q)
+            return w / jnp.maximum(jnp.linalg.norm(w), 1e-30)
+
+        q = jax.lax.fori_loop(0, iterations, body, q0)
+        return jnp.abs(jnp.vdot(q, apply(q)))
+
+    return largest(operator("x")), largest(operator("v"))
+
+
+@dataclasses.dataclass(frozen=True)
+class BlowUp:
+    """Where a rollout went wrong.
+
+    Attributes:
+        step: index of the first bad time step (1-based count of steps taken).
+        time: simulated time at that step [s].
+        reason: "non-finite state" or "energy exploded".
+        stability: the scene's stable-dt estimate.
+    """
+
+    step: int
+    time: float
+    reason: str
+    stability: StabilityEstimate
+
+    def describe(self) -> str:
+        s = self.stability
+        advice = (
+            f"reduce dt below {s.dt_bound:.3g} s (stable-dt estimate 2/omega_max, omega_max {s.omega_max:.4g} rad/s)"
+        )
+        return f"simulation blew up at step {self.step} (t = {self.time:.6g} s): {self.reason}; {advice}"
+
+
+def energy_threshold(model: Model, params: Params, state: State) -> float:
+    """Energy above which a rollout starting at `state` counts as exploded [J].
+
+    Without energy sources the total energy never exceeds its start; we allow
+    ENERGY_GAIN_FACTOR times a generous scale (kinetic + potential magnitudes
+    plus the weight times the size of the scene) for integration error.
+    """
+    e0 = float(model.energy(params, state))
+    x = np.asarray(state.x)
+    size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0))) + 1.0
+    scale = 1.0 + abs(e0) + 0.5 * float(np.sum(np.asarray(model.mass)[:, None] * np.asarray(state.v) ** 2))
+    for name in model.terms:
+        scale += abs(float(TERMS[name].energy(model, params, state.x)))
+    if model.has("gravity"):
+        scale += float(np.sum(np.asarray(model.mass)) * np.linalg.norm(np.asarray(params.gravity))) * size
+    return e0 + ENERGY_GAIN_FACTOR * scale
+
+
+def first_bad_frame(model: Model, params: Params, x, v, threshold: float) -> int | None:
+    """Index of the first frame in x, v (frames, N, 3) that is non-finite or above `threshold` J."""
+    frames = Trajectory(x=jnp.asarray(x), v=jnp.asarray(v), t=jnp.zeros(x.shape[0]))
+    e = np.asarray(energy(model, params, frames))
+    finite = np.isfinite(np.asarray(x)).all(axis=(1, 2)) & np.isfinite(np.asarray(v)).all(axis=(1, 2))
+    bad = ~finite | ~np.isfinite(e) | (e > threshold)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def locate_blowup(
+    model: Model, params: Params, good_state: State, good_step: int, max_steps: int, threshold: float,
+    stability: StabilityEstimate,
+) -> BlowUp:
+    """Re-run step by step from the last good state to find the exact first bad step."""
+    _, x, v = _simulate(model, params, good_state, int(max_steps), 1)
+    offset = first_bad_frame(model, params, x, v, threshold)
+    offset = max_steps - 1 if offset is None else offset
+    xs, vs = np.asarray(x[offset]), np.asarray(v[offset])
+    reason = "non-finite state" if not (np.isfinite(xs).all() and np.isfinite(vs).all()) else "energy exploded"
+    step = good_step + offset + 1
+    return BlowUp(step=step, time=step * model.dt, reason=reason, stability=stability)
+
+
+def find_blowup(model: Model, params: Params, trajectory: Trajectory) -> BlowUp | None:
+    """Check a finished rollout; return where it blew up, or None if it stayed sane.
+
+    The rollout itself carries no checks (the fast path stays fast); this looks
+    at the saved frames afterwards and re-simulates the one bad interval step by
+    step to report the exact step index.
+
+    Example:
+        >>> traj = js.rollout(model, params, state, steps=5000, save_every=50)
+        >>> problem = js.find_blowup(model, params, traj)
+        >>> if problem: print(problem.describe())
+    """
+    first = trajectory.frame(0)
+    threshold = energy_threshold(model, params, first)
+    bad = first_bad_frame(model, params, trajectory.x, trajectory.v, threshold)
+    if bad is None:
+        return None
+    t = np.asarray(trajectory.t)
+    save_every = max(1, int(round((t[1] - t[0]) / model.dt))) if t.shape[0] > 1 else 1
+    stability = estimate_stability(model, params, first)
+    if bad == 0:
+        return BlowUp(0, 0.0, "non-finite initial state", stability)
+    return locate_blowup(
+        model, params, trajectory.frame(bad - 1), (bad - 1) * save_every, save_every, threshold, stability
+    )
