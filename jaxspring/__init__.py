@@ -14,6 +14,7 @@ from ._forces import TERMS, safe_norm
 from ._integrators import INTEGRATORS, semi_implicit_euler
 from ._model import Model, check_params, make_model
 from ._params import Params
+from ._render import render
 from ._rollout import energy, final_state, rollout
 from ._scene import Scene, builtin_scenes, load_scene, scene_from_dict
 from ._stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup
@@ -25,5 +26,5 @@ __all__ = [
     "Model", "Params", "Scene", "StabilityEstimate", "State", "TERMS", "Trajectory",
     "builtin_scenes", "check_params", "energy", "estimate_stability", "final_state", "find_blowup",
     "lattice_faces", "lattice_positions", "lattice_springs", "load_scene", "load_trajectory",
-    "make_model", "rollout", "safe_norm", "save_trajectory", "scene_from_dict", "semi_implicit_euler",
+    "make_model", "render", "rollout", "safe_norm", "save_trajectory", "scene_from_dict", "semi_implicit_euler",
 ]

@@ -1,0 +1,208 @@
+"""The `jaxspring` command line (DESIGN.md section 5).
+
+Every error a user can cause ends in one line naming the problem and the fix,
+exit code 2, no traceback, and no output file left half-written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+EXIT_USER_ERROR = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit code 2
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message}; see `{self.prog} --help`\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="jaxspring", description="Differentiable mass-spring simulation in JAX.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    run = sub.add_parser("run", help="simulate a scene and write its trajectory (HDF5)")
+    run.add_argument("scene", help="scene TOML file, or a built-in name (mass_spring, chain, jelly, cloth)")
+    run.add_argument("--steps", type=int, help="time steps (default: the scene's)")
+    run.add_argument("--save-every", type=int, help="keep one frame every K steps (default: the scene's)")
+    run.add_argument("--out", help="output file (default: SCENE_NAME.h5)")
+    run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter, e.g. ks=600")
+    run.add_argument("--integrator", help="time integrator (default: the scene's)")
+    _add_common(run)
+
+    render = sub.add_parser("render", help="draw a trajectory file to a PNG frame or a GIF movie")
+    render.add_argument("file", help="trajectory file written by `jaxspring run`")
+    render.add_argument("--out", help="output .png or .gif (default: FILE with .gif)")
+    render.add_argument("--frame", type=int, default=-1, help="frame a PNG shows (default: last)")
+    render.add_argument("--max-frames", type=int, default=60, help="frames in a GIF (default: 60)")
+    render.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    demo = sub.add_parser("demo", help="run the four seed scenes; write trajectories, pictures and movies")
+    demo.add_argument("--out-dir", default="demo_output", help="folder to write into (default: demo_output)")
+    demo.add_argument("--no-movies", action="store_true", help="skip the GIFs (faster)")
+    _add_common(demo)
+    return parser
+
+
+def _add_common(sub):
+    sub.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="floating-point precision")
+    sub.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def main(argv=None) -> int:
+    """Entry point of the `jaxspring` console script; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    from ._errors import JaxspringError
+
+    try:
+        if getattr(args, "dtype", "float32") == "float64":
+            import jax
+
+            jax.config.update("jax_enable_x64", True)
+        handler = {"run": _cmd_run, "render": _cmd_render, "demo": _cmd_demo}[args.command]
+        return handler(args) or 0
+    except JaxspringError as exc:
+        print(f"jaxspring: error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("jaxspring: interrupted; no output file was written", file=sys.stderr)
+        return 130
+
+
+def _parse_sets(items) -> dict:
+    from ._errors import InputError
+
+    values = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise InputError("--set", f"{item!r} is not NAME=VALUE", "write e.g. --set ks=600")
+        try:
+            value = float(text)
+        except ValueError:
+            raise InputError(f"--set {name}", f"{text!r} is not a number", f"write e.g. --set {name}=600") from None
+        if not math.isfinite(value):
+            raise InputError(f"--set {name}", "must be finite", "give a finite number")
+        values[name.strip()] = value
+    return values
+
+
+def _prepare_scene(args):
+    from ._errors import InputError
+    from ._scene import load_scene
+
+    scene = load_scene(args.scene)
+    if args.integrator:
+        scene = scene.with_integrator(args.integrator)
+    overrides = _parse_sets(args.set)
+    if overrides:
+        scene = scene.with_params(**overrides)
+    steps = scene.steps if args.steps is None else args.steps
+    save_every = scene.save_every if args.save_every is None else args.save_every
+    if save_every < 1:
+        raise InputError("--save-every", f"must be >= 1, got {save_every}", "give a positive stride")
+    if steps < 1:
+        raise InputError("--steps", f"must be >= 1, got {steps}", "give a positive number of steps")
+    if steps % save_every:
+        raise InputError("--steps", f"{steps} is not a multiple of --save-every {save_every}", "make it one")
+    return scene, steps, save_every
+
+
+def _check_out_folder(path: Path):
+    from ._errors import InputError
+
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError("--out", f"folder {str(folder)!r} does not exist", "create it or choose another path")
+
+
+def _simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
+    from ._errors import BlowUpError
+    from ._files import save_trajectory
+    from ._run import run_scene
+
+    stability = None
+    result = run_scene(scene, steps, save_every, show_progress=not quiet)
+    stability = result.stability
+    if stability.margin < 1:
+        print(
+            f"jaxspring: warning: {scene.name}: dt {scene.model.dt:g} s exceeds the stable-dt estimate "
+            f"{stability.dt_bound:.3g} s; expect a blow-up", file=sys.stderr,
+        )
+    if result.blowup is not None:
+        raise BlowUpError(f"{scene.name}: {result.blowup.describe()}; no file was written")
+    save_trajectory(out, scene, result.trajectory)
+    return result
+
+
+def _summary(scene, result, out) -> str:
+    return (
+        f"{scene.name}: {result.steps} steps of {scene.model.dt:g} s in {result.wall_s:.3f} s "
+        f"({result.steps_per_second:,.0f} steps/s; compile {result.compile_s:.2f} s); "
+        f"energy {result.energy_start:.6g} J -> {result.energy_end:.6g} J; wrote {out}"
+    )
+
+
+def _cmd_run(args):
+    scene, steps, save_every = _prepare_scene(args)
+    out = Path(args.out or f"{scene.name}.h5")
+    _check_out_folder(out)
+    result = _simulate_and_save(scene, steps, save_every, out, args.quiet)
+    print(_summary(scene, result, out))
+
+
+def _render_with_progress(scene, trajectory, out, frame, max_frames, quiet, label):
+    from tqdm.auto import tqdm
+
+    from ._render import render
+
+    with tqdm(total=0, desc=label, unit="frame", file=sys.stderr, disable=quiet or not sys.stderr.isatty(), leave=False) as bar:
+
+        def progress(done, total):
+            bar.total = total
+            bar.n = done + 1
+            bar.refresh()
+
+        render(scene, trajectory, out, frame=frame, max_frames=max_frames, progress=progress)
+
+
+def _cmd_render(args):
+    from ._files import load_trajectory
+
+    scene, trajectory = load_trajectory(args.file)
+    out = Path(args.out) if args.out else Path(args.file).with_suffix(".gif")
+    _check_out_folder(out)
+    _render_with_progress(scene, trajectory, out, args.frame, args.max_frames, args.quiet, f"render {out.name}")
+    print(f"wrote {out}")
+
+
+def _cmd_demo(args):
+    from ._scene import builtin_scenes, load_scene
+
+    folder = Path(args.out_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    rows = []
+    for name in builtin_scenes():
+        scene = load_scene(name)
+        out = folder / f"{name}.h5"
+        result = _simulate_and_save(scene, scene.steps, scene.save_every, out, args.quiet)
+        print(_summary(scene, result, out), flush=True)
+        traj = result.trajectory
+        _render_with_progress(scene, traj, folder / f"{name}.png", -1, 60, args.quiet, f"{name}.png")
+        if not args.no_movies:
+            _render_with_progress(scene, traj, folder / f"{name}.gif", -1, 60, args.quiet, f"{name}.gif")
+        rows.append((name, scene.model.particle_count, scene.model.spring_count, result))
+    print()
+    print(f"{'scene':<12}{'particles':>10}{'springs':>9}{'steps':>8}{'steps/s':>12}{'E start [J]':>14}{'E end [J]':>14}")
+    for name, n, s, r in rows:
+        print(f"{name:<12}{n:>10}{s:>9}{r.steps:>8}{r.steps_per_second:>12,.0f}{r.energy_start:>14.6g}{r.energy_end:>14.6g}")
+    print(f"\nwrote trajectories (.h5), last frames (.png){'' if args.no_movies else ' and movies (.gif)'} "
+          f"to {folder}/ in {time.perf_counter() - start:.1f} s")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""Pictures and movies of trajectories with matplotlib (y is drawn up)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import InputError
+from ._files import atomic_path
+from ._scene import Scene
+from ._state import Trajectory
+
+# World (x, y, z) with y up -> matplotlib's (x, y, z) with z up.
+_TO_PLOT = (0, 2, 1)
+
+
+def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frames: int = 60, progress=None) -> Path:
+    """Draw one frame to a PNG or the whole trajectory to a GIF, written atomically.
+
+    Scenes with faces are drawn as a shaded triangle soup (jelly surface, cloth),
+    others as points joined by their springs (mass_spring, chain).
+
+    Args:
+        out: a path ending in .png (one frame) or .gif (a movie).
+        frame: which saved frame a PNG shows (negative counts from the end).
+        max_frames: a GIF uses at most this many evenly spaced frames.
+        progress: optional callable(done, total) for long movies.
+
+    Example:
+        >>> scene, traj = js.load_trajectory("cloth.h5")
+        >>> js.render(scene, traj, "cloth.png")
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import animation
+
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in (".png", ".gif"):
+        raise InputError("out", f"{str(out)!r} is neither .png nor .gif", "name the output file.png or file.gif")
+    x = np.asarray(trajectory.x)[..., _TO_PLOT]
+    t = np.asarray(trajectory.t)
+    frames = x.shape[0]
+    if not -frames <= frame < frames:
+        raise InputError("frame", f"{frame} is outside 0..{frames - 1}", "choose an existing frame")
+
+    fig = plt.figure(figsize=(6, 5), dpi=90)
+    ax = fig.add_subplot(projection="3d")
+    drawer = _Drawer(ax, scene, x, t)
+    with atomic_path(out) as tmp:
+        if suffix == ".png":
+            drawer.draw(frame % frames)
+            fig.savefig(tmp)
+        else:
+            chosen = np.unique(np.linspace(0, frames - 1, min(max_frames, frames)).round().astype(int))
+            movie = animation.FuncAnimation(fig, lambda i: drawer.draw(int(i)), frames=chosen, blit=False)
+            movie.save(tmp, writer=animation.PillowWriter(fps=15), progress_callback=progress)
+    plt.close(fig)
+    return out
+
+
+class _Drawer:
+    def __init__(self, ax, scene: Scene, x: np.ndarray, t: np.ndarray):
+        self.ax, self.scene, self.x, self.t = ax, scene, x, t
+        finite = x[np.isfinite(x).all(axis=(1, 2))]
+        lo, hi = (finite.min(axis=(0, 1)), finite.max(axis=(0, 1))) if finite.size else (np.zeros(3) - 1, np.ones(3))
+        if scene.model.has("ground"):
+            lo[2] = min(lo[2], float(scene.params.ground_height))
+        centre, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 0.5) * 1.05
+        self.limits = [(c - half, c + half) for c in centre]
+        self.springs = np.asarray(scene.model.springs)
+        self.pinned = np.asarray(scene.model.pinned)
+
+    def draw(self, index: int):
+        from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+
+        ax, p = self.ax, self.x[index]
+        ax.clear()
+        (xl, yl, zl) = self.limits
+        ax.set(xlim=xl, ylim=yl, zlim=zl, xlabel="x [m]", ylabel="z [m]", zlabel="y [m]")
+        ax.set_box_aspect((1, 1, 1))
+        if self.scene.model.has("ground"):
+            h = float(self.scene.params.ground_height)
+            corners = [[xl[0], yl[0], h], [xl[1], yl[0], h], [xl[1], yl[1], h], [xl[0], yl[1], h]]
+            ax.add_collection3d(Poly3DCollection([corners], facecolor="0.8", alpha=0.4, edgecolor="none"))
+        if len(self.scene.faces):
+            triangles = p[np.asarray(self.scene.faces)]
+            ax.add_collection3d(
+                Poly3DCollection(triangles, facecolors="tab:orange", edgecolor="0.3", linewidth=0.15, alpha=0.9, shade=True)
+            )
+        else:
+            if len(self.springs):
+                ax.add_collection3d(Line3DCollection(p[self.springs], colors="0.4", linewidths=1.0))
+            ax.scatter(*p[~self.pinned].T, s=18, color="tab:blue", depthshade=False)
+        if self.pinned.any():
+            ax.scatter(*p[self.pinned].T, s=30, color="black", marker="s", depthshade=False)
+        ax.set_title(f"{self.scene.name}   t = {self.t[index]:.2f} s")
+        return []
