@@ -53,10 +53,11 @@ class Params:
     gravity: Optional[jax.Array] = None
 
     def __post_init__(self):
-        # Accept Python numbers and lists; leave tracers and arrays alone.
+        # Accept Python floats and lists; leave tracers, arrays and ints alone (so a
+        # Params of ints/None can serve as `in_axes` for jax.vmap).
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if isinstance(value, (int, float, list, tuple)):
+            if isinstance(value, (float, list, tuple)):
                 object.__setattr__(self, field.name, jnp.asarray(value, dtype=float))
 
     def replace(self, **changes) -> Params:
