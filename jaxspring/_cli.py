@@ -123,15 +123,15 @@ def _simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
     from ._errors import BlowUpError
     from ._files import save_trajectory
     from ._run import run_scene
+    from ._stability import estimate_stability
 
-    stability = None
-    result = run_scene(scene, steps, save_every, show_progress=not quiet)
-    stability = result.stability
+    stability = estimate_stability(scene.model, scene.params, scene.state)
     if stability.margin < 1:
         print(
             f"jaxspring: warning: {scene.name}: dt {scene.model.dt:g} s exceeds the stable-dt estimate "
-            f"{stability.dt_bound:.3g} s; expect a blow-up", file=sys.stderr,
+            f"{stability.dt_bound:.3g} s; expect a blow-up", file=sys.stderr, flush=True,
         )
+    result = run_scene(scene, steps, save_every, show_progress=not quiet, stability=stability)
     if result.blowup is not None:
         raise BlowUpError(f"{scene.name}: {result.blowup.describe()}; no file was written")
     save_trajectory(out, scene, result.trajectory)

@@ -46,7 +46,10 @@ class RunResult:
         return self.steps / self.wall_s if self.wall_s > 0 else float("inf")
 
 
-def run_scene(scene: Scene, steps: int, save_every: int, show_progress: bool = True, label: str | None = None) -> RunResult:
+def run_scene(
+    scene: Scene, steps: int, save_every: int, show_progress: bool = True, label: str | None = None,
+    stability: StabilityEstimate | None = None,
+) -> RunResult:
     """Roll a scene out in chunks with a progress bar, checking for blow-up after each chunk.
 
     Example:
@@ -57,7 +60,7 @@ def run_scene(scene: Scene, steps: int, save_every: int, show_progress: bool = T
 
     model, params, state = scene.model, scene.params, scene.state
     frames = _frame_count(steps, save_every)
-    stability = estimate_stability(model, params, state)
+    stability = stability or estimate_stability(model, params, state)
     threshold = energy_threshold(model, params, state)
     per_chunk = max(1, min(frames, CHUNK_STEPS // save_every)) if frames else 0
     compiled, compile_s = {}, 0.0

@@ -150,6 +150,8 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     lattice = top.table("lattice")
     particles = top.table("particles")
     springs_table = top.table("springs")
+    initial = top.table("initial")
+    top.finish()
     if (lattice is None) == (particles is None):
         raise InputError(
             "lattice", "a scene needs exactly one of [lattice] or [particles]",
@@ -164,7 +166,6 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     else:
         topology = _explicit_topology(particles, springs_table, has_drag=cd is not None)
 
-    initial = top.table("initial")
     x = topology.pop("positions")
     v = topology.pop("velocities")
     if initial is not None:
@@ -174,7 +175,6 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
         mass = topology["mass"] * np.ones(x.shape[0])
         centre = np.sum(mass[:, None] * x, axis=0) / np.sum(mass)
         v = v + np.cross(omega, x - centre)
-    top.finish()
 
     springs = topology["springs"]
     if springs.shape[0] and (ks is None or kd is None):
@@ -301,7 +301,9 @@ class _Table:
         try:
             return check(self.data[key])
         except _Bad as bad:
-            raise InputError(self._field(key), f"{bad.problem}, got {self.data[key]!r}", bad.fix) from None
+            got = repr(self.data[key])
+            got = got if len(got) <= 60 else got[:57] + "..."
+            raise InputError(self._field(key), f"{bad.problem}, got {got}", bad.fix) from None
 
     def table(self, key, required=False):
         self.seen.add(key)
