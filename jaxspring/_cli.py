@@ -29,7 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--steps", type=int, help="time steps (default: the scene's)")
     run.add_argument("--save-every", type=int, help="keep one frame every K steps (default: the scene's)")
     run.add_argument("--out", help="output file (default: SCENE_NAME.h5)")
-    run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter, e.g. ks=600")
+    run.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter, e.g. ks=600"
+    )
     run.add_argument("--integrator", help="time integrator (default: the scene's)")
     _add_common(run)
 
@@ -129,7 +131,9 @@ def _simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
     if stability.margin < 1:
         print(
             f"jaxspring: warning: {scene.name}: dt {scene.model.dt:g} s exceeds the stable-dt estimate "
-            f"{stability.dt_bound:.3g} s; expect a blow-up", file=sys.stderr, flush=True,
+            f"{stability.dt_bound:.3g} s; expect a blow-up",
+            file=sys.stderr,
+            flush=True,
         )
     result = run_scene(scene, steps, save_every, show_progress=not quiet, stability=stability)
     if result.blowup is not None:
@@ -159,7 +163,9 @@ def _render_with_progress(scene, trajectory, out, frame, max_frames, quiet, labe
 
     from ._render import render
 
-    with tqdm(total=0, desc=label, unit="frame", file=sys.stderr, disable=quiet or not sys.stderr.isatty(), leave=False) as bar:
+    with tqdm(
+        total=0, desc=label, unit="frame", file=sys.stderr, disable=quiet or not sys.stderr.isatty(), leave=False
+    ) as bar:
 
         def progress(done, total):
             bar.total = total
@@ -197,11 +203,17 @@ def _cmd_demo(args):
             _render_with_progress(scene, traj, folder / f"{name}.gif", -1, 60, args.quiet, f"{name}.gif")
         rows.append((name, scene.model.particle_count, scene.model.spring_count, result))
     print()
-    print(f"{'scene':<12}{'particles':>10}{'springs':>9}{'steps':>8}{'steps/s':>12}{'E start [J]':>14}{'E end [J]':>14}")
+    print(
+        f"{'scene':<12}{'particles':>10}{'springs':>9}{'steps':>8}{'steps/s':>12}{'E start [J]':>14}{'E end [J]':>14}"
+    )
     for name, n, s, r in rows:
-        print(f"{name:<12}{n:>10}{s:>9}{r.steps:>8}{r.steps_per_second:>12,.0f}{r.energy_start:>14.6g}{r.energy_end:>14.6g}")
-    print(f"\nwrote trajectories (.h5), last frames (.png){'' if args.no_movies else ' and movies (.gif)'} "
-          f"to {folder}/ in {time.perf_counter() - start:.1f} s")
+        print(
+            f"{name:<12}{n:>10}{s:>9}{r.steps:>8}{r.steps_per_second:>12,.0f}{r.energy_start:>14.6g}{r.energy_end:>14.6g}"
+        )
+    print(
+        f"\nwrote trajectories (.h5), last frames (.png){'' if args.no_movies else ' and movies (.gif)'} "
+        f"to {folder}/ in {time.perf_counter() - start:.1f} s"
+    )
 
 
 if __name__ == "__main__":

@@ -62,8 +62,13 @@ def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
     model = scene.model
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(
-            format=TRAJECTORY_FORMAT, format_version=FORMAT_VERSION, scene=scene.name,
-            integrator=model.integrator, dt=model.dt, dtype=str(x.dtype), jaxspring_version=__version__,
+            format=TRAJECTORY_FORMAT,
+            format_version=FORMAT_VERSION,
+            scene=scene.name,
+            integrator=model.integrator,
+            dt=model.dt,
+            dtype=str(x.dtype),
+            jaxspring_version=__version__,
         )
         group = f.create_group("params")
         for name, value in scene.params.to_dict().items():
@@ -100,7 +105,9 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
     try:
         f = h5py.File(path, "r")
     except OSError:
-        raise FileFormatError(f"{path}: not a readable HDF5 file (truncated or another format); re-create it with `jaxspring run`") from None
+        raise FileFormatError(
+            f"{path}: not a readable HDF5 file (truncated or another format); re-create it with `jaxspring run`"
+        ) from None
     with f:
         if f.attrs.get("format") != TRAJECTORY_FORMAT:
             raise FileFormatError(
@@ -108,7 +115,9 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             )
         version = int(f.attrs.get("format_version", -1))
         if version != FORMAT_VERSION:
-            raise FileFormatError(f"{path}: format_version {version} is not supported; this jaxspring reads version {FORMAT_VERSION}")
+            raise FileFormatError(
+                f"{path}: format_version {version} is not supported; this jaxspring reads version {FORMAT_VERSION}"
+            )
         try:
             params = {name: np.asarray(f["params"][name][()]) for name in f["params"]}
             topo = f["topology"]
@@ -125,24 +134,40 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             integrator, dt = str(f.attrs["integrator"]), float(f.attrs["dt"])
             name = str(f.attrs.get("scene", path.stem))
         except (KeyError, OSError) as exc:
-            raise FileFormatError(f"{path}: incomplete trajectory file ({exc}); re-create it with `jaxspring run`") from None
+            raise FileFormatError(
+                f"{path}: incomplete trajectory file ({exc}); re-create it with `jaxspring run`"
+            ) from None
     unknown = sorted(set(params) - set(Params.names()))
     if unknown:
         raise FileFormatError(f"{path}: unknown parameter {unknown[0]!r}; this file was written by a newer jaxspring")
     if x.ndim != 3 or x.shape[2] != 3 or x.shape != v.shape or t.shape != (x.shape[0],) or x.shape[1] != mass.shape[0]:
-        raise FileFormatError(f"{path}: trajectory shapes disagree (x {x.shape}, v {v.shape}, t {t.shape}); re-create the file")
+        raise FileFormatError(
+            f"{path}: trajectory shapes disagree (x {x.shape}, v {v.shape}, t {t.shape}); re-create the file"
+        )
     try:
         model = make_model(
-            springs, mass, rest_length=rest_length, pinned=pinned, drag=drag,
-            gravity="gravity" in params, ground="kg" in params, integrator=integrator, dt=dt,
+            springs,
+            mass,
+            rest_length=rest_length,
+            pinned=pinned,
+            drag=drag,
+            gravity="gravity" in params,
+            ground="kg" in params,
+            integrator=integrator,
+            dt=dt,
         )
         scene_params = check_params(model, Params(**{k: jnp.asarray(v, dtype=float) for k, v in params.items()}))
     except InputError as exc:
         raise exc.within(str(path)) from None
     scene = Scene(
-        name=name, model=model, params=scene_params,
+        name=name,
+        model=model,
+        params=scene_params,
         state=State(x=jnp.asarray(x[0], dtype=float), v=jnp.asarray(v[0], dtype=float)),
-        faces=faces, steps=int(x.shape[0] - 1) * _stride(t, dt), save_every=_stride(t, dt), lattice_shape=lattice,
+        faces=faces,
+        steps=int(x.shape[0] - 1) * _stride(t, dt),
+        save_every=_stride(t, dt),
+        lattice_shape=lattice,
     )
     trajectory = Trajectory(x=jnp.asarray(x), v=jnp.asarray(v), t=jnp.asarray(t))
     return scene, trajectory

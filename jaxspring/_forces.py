@@ -126,9 +126,7 @@ class Ground:
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
             depth = params.ground_height - x[:, Y_AXIS]
-            normal_force = jnp.where(
-                depth > 0, params.kg * depth - params.kgd * v[:, Y_AXIS], 0.0
-            )
+            normal_force = jnp.where(depth > 0, params.kg * depth - params.kgd * v[:, Y_AXIS], 0.0)
             up = jnp.zeros(3, x.dtype).at[Y_AXIS].set(1.0)
             return normal_force[:, None] * up[None, :]
 

@@ -129,7 +129,9 @@ def make_model(
     _, first, counts = np.unique(canonical, axis=0, return_index=True, return_counts=True)
     if np.any(counts > 1):
         pair = canonical[first[np.argmax(counts > 1)]]
-        raise InputError("springs", f"duplicate spring between particles {pair[0]} and {pair[1]}", "list each pair once")
+        raise InputError(
+            "springs", f"duplicate spring between particles {pair[0]} and {pair[1]}", "list each pair once"
+        )
     if rest_length is None:
         if positions is None:
             raise InputError("rest_length", "missing and no positions to measure it from", "give rest lengths")
@@ -143,9 +145,7 @@ def make_model(
     pinned_np = _mask("pinned", pinned, count, default=False)
     drag_np = _mask("drag", drag, count, default=False)
     if integrator not in INTEGRATORS:
-        raise InputError(
-            "integrator", f"unknown integrator {integrator!r}", f"use one of {', '.join(INTEGRATORS)}"
-        )
+        raise InputError("integrator", f"unknown integrator {integrator!r}", f"use one of {', '.join(INTEGRATORS)}")
     if not (np.isfinite(dt) and dt > 0):
         raise InputError("dt", f"must be a finite number > 0, got {dt}", "set a positive time step")
     terms = []
@@ -198,9 +198,7 @@ def check_params(model: Model, params: Params) -> Params:
         elif per == "particle":
             allowed[(model.particle_count,)] = f"one value per particle ({model.particle_count})"
         if value.shape not in allowed:
-            raise InputError(
-                name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}"
-            )
+            raise InputError(name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}")
         if name in NON_NEGATIVE and np.any(value < 0):
             raise InputError(name, f"must be >= 0, got {value.min():g}", f"set a non-negative {name}")
         changes[name] = jnp.asarray(value, dtype=float)

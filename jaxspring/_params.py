@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -44,13 +43,13 @@ class Params:
         >>> p = p.replace(ks=600.0)
     """
 
-    ks: Optional[jax.Array] = None
-    kd: Optional[jax.Array] = None
-    cd: Optional[jax.Array] = None
-    kg: Optional[jax.Array] = None
-    kgd: Optional[jax.Array] = None
-    ground_height: Optional[jax.Array] = None
-    gravity: Optional[jax.Array] = None
+    ks: jax.Array | None = None
+    kd: jax.Array | None = None
+    cd: jax.Array | None = None
+    kg: jax.Array | None = None
+    kgd: jax.Array | None = None
+    ground_height: jax.Array | None = None
+    gravity: jax.Array | None = None
 
     def __post_init__(self):
         # Accept Python floats and lists; leave tracers, arrays and ints alone (so a
@@ -66,11 +65,7 @@ class Params:
 
     def to_dict(self) -> dict:
         """The parameters that are present, as a name -> array dict."""
-        return {
-            f.name: getattr(self, f.name)
-            for f in dataclasses.fields(self)
-            if getattr(self, f.name) is not None
-        }
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

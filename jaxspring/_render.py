@@ -89,7 +89,9 @@ class _Drawer:
         if len(self.scene.faces):
             triangles = p[np.asarray(self.scene.faces)]
             ax.add_collection3d(
-                Poly3DCollection(triangles, facecolors="tab:orange", edgecolor="0.3", linewidth=0.15, alpha=0.9, shade=True)
+                Poly3DCollection(
+                    triangles, facecolors="tab:orange", edgecolor="0.3", linewidth=0.15, alpha=0.9, shade=True
+                )
             )
         else:
             if len(self.springs):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from typing import Iterator
+from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -79,7 +79,8 @@ def _frame_count(steps, save_every) -> int:
         raise InputError("save_every", f"must be >= 1, got {save_every}", "save at least every step")
     if steps < 0 or steps % save_every:
         raise InputError(
-            "steps", f"{steps} is not a non-negative multiple of save_every={save_every}",
+            "steps",
+            f"{steps} is not a non-negative multiple of save_every={save_every}",
             "choose steps divisible by save_every",
         )
     return steps // save_every

@@ -47,7 +47,11 @@ class RunResult:
 
 
 def run_scene(
-    scene: Scene, steps: int, save_every: int, show_progress: bool = True, label: str | None = None,
+    scene: Scene,
+    steps: int,
+    save_every: int,
+    show_progress: bool = True,
+    label: str | None = None,
     stability: StabilityEstimate | None = None,
 ) -> RunResult:
     """Roll a scene out in chunks with a progress bar, checking for blow-up after each chunk.
@@ -76,8 +80,13 @@ def run_scene(
     xs, vs = [np.asarray(state.x)[None]], [np.asarray(state.v)[None]]
     blowup, done, wall = None, 0, 0.0
     bar = tqdm(
-        total=steps, unit="step", unit_scale=True, desc=label or scene.name, file=sys.stderr,
-        disable=not show_progress or not sys.stderr.isatty(), leave=False,
+        total=steps,
+        unit="step",
+        unit_scale=True,
+        desc=label or scene.name,
+        file=sys.stderr,
+        disable=not show_progress or not sys.stderr.isatty(),
+        leave=False,
     )
     current = state
     with bar:
@@ -91,8 +100,10 @@ def run_scene(
             x, v = np.asarray(x), np.asarray(v)
             bad = first_bad_frame(model, params, x, v, threshold)
             if bad is not None:
-                good = State(x=jnp.asarray(xs[-1][-1]), v=jnp.asarray(vs[-1][-1])) if bad == 0 else State(
-                    x=jnp.asarray(x[bad - 1]), v=jnp.asarray(v[bad - 1])
+                good = (
+                    State(x=jnp.asarray(xs[-1][-1]), v=jnp.asarray(vs[-1][-1]))
+                    if bad == 0
+                    else State(x=jnp.asarray(x[bad - 1]), v=jnp.asarray(v[bad - 1]))
                 )
                 good_step = (done + bad) * save_every
                 blowup = locate_blowup(model, params, good, good_step, save_every, threshold, stability)
@@ -107,7 +118,8 @@ def run_scene(
             bar.update(n * save_every)
     x_all, v_all = np.concatenate(xs), np.concatenate(vs)
     trajectory = Trajectory(
-        x=jnp.asarray(x_all), v=jnp.asarray(v_all),
+        x=jnp.asarray(x_all),
+        v=jnp.asarray(v_all),
         t=jnp.asarray(np.arange(x_all.shape[0]) * save_every * model.dt, dtype=x_all.dtype),
     )
     e_start = float(model.energy(params, trajectory.frame(0)))

@@ -6,7 +6,7 @@ import dataclasses
 import math
 import tomllib
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -49,16 +49,14 @@ class Scene:
     faces: np.ndarray
     steps: int = 1000
     save_every: int = 10
-    lattice_shape: Optional[tuple] = None
+    lattice_shape: tuple | None = None
     description: str = ""
 
     def with_params(self, **values) -> Scene:
         """A copy with some parameters replaced (validated)."""
         unknown = [k for k in values if k not in Params.names()]
         if unknown:
-            raise InputError(
-                unknown[0], "is not a parameter", f"use one of {', '.join(Params.names())}"
-            )
+            raise InputError(unknown[0], "is not a parameter", f"use one of {', '.join(Params.names())}")
         return dataclasses.replace(self, params=check_params(self.model, self.params.replace(**values)))
 
     def with_integrator(self, name: str) -> Scene:
@@ -90,7 +88,8 @@ def resolve_scene_path(path_or_name) -> Path:
     if not path.suffix and candidate.exists():
         return candidate
     raise InputError(
-        "scene", f"file {str(path_or_name)!r} not found",
+        "scene",
+        f"file {str(path_or_name)!r} not found",
         f"give a path to a scene TOML file or a built-in name ({', '.join(builtin_scenes())})",
     )
 
@@ -154,7 +153,8 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     top.finish()
     if (lattice is None) == (particles is None):
         raise InputError(
-            "lattice", "a scene needs exactly one of [lattice] or [particles]",
+            "lattice",
+            "a scene needs exactly one of [lattice] or [particles]",
             "describe the particles with one of them",
         )
     lattice_shape = None
@@ -201,8 +201,15 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     v = np.where(np.asarray(model.pinned)[:, None], 0.0, v)
     state = State(x=jnp.asarray(x, dtype=float), v=jnp.asarray(v, dtype=float))
     return Scene(
-        name=name, model=model, params=params, state=state, faces=topology["faces"],
-        steps=steps, save_every=save_every, lattice_shape=lattice_shape, description=description,
+        name=name,
+        model=model,
+        params=params,
+        state=state,
+        faces=topology["faces"],
+        steps=steps,
+        save_every=save_every,
+        lattice_shape=lattice_shape,
+        description=description,
     )
 
 
@@ -211,8 +218,16 @@ def _lattice_topology(table: _Table, has_drag: bool) -> dict:
     spacing = table.take("spacing", _positive, default=1.0)
     origin = table.take("origin", _vector3, default=(0.0, 0.0, 0.0))
     axes_names = table.take("axes", _string_list, default=["x", "y", "z"][: len(shape)])
-    if len(axes_names) != len(shape) or any(a not in AXES for a in axes_names) or len(set(axes_names)) != len(axes_names):
-        raise InputError("axes", f"{axes_names} does not map the {len(shape)} lattice axes", 'give distinct names from "x", "y", "z", one per axis')
+    if (
+        len(axes_names) != len(shape)
+        or any(a not in AXES for a in axes_names)
+        or len(set(axes_names)) != len(axes_names)
+    ):
+        raise InputError(
+            "axes",
+            f"{axes_names} does not map the {len(shape)} lattice axes",
+            'give distinct names from "x", "y", "z", one per axis',
+        )
     sets = table.take("springs", _string_list, required=True)
     for name in sets:
         if name not in NEIGHBOUR_SETS:
@@ -229,14 +244,19 @@ def _lattice_topology(table: _Table, has_drag: bool) -> dict:
         pinned.append(int(np.ravel_multi_index(tuple(cell), shape)))
     count = positions.shape[0]
     return dict(
-        positions=positions, velocities=np.zeros_like(positions),
-        springs=lattice_springs(shape, sets), rest_length=None,
-        mass=float(mass), pinned=pinned, drag=np.full(count, bool(drag)),
-        faces=lattice_faces(shape), lattice_shape=tuple(shape),
+        positions=positions,
+        velocities=np.zeros_like(positions),
+        springs=lattice_springs(shape, sets),
+        rest_length=None,
+        mass=float(mass),
+        pinned=pinned,
+        drag=np.full(count, bool(drag)),
+        faces=lattice_faces(shape),
+        lattice_shape=tuple(shape),
     )
 
 
-def _explicit_topology(particles: _Table, springs_table: Optional[_Table], has_drag: bool) -> dict:
+def _explicit_topology(particles: _Table, springs_table: _Table | None, has_drag: bool) -> dict:
     positions = np.asarray(particles.take("x", _vectors, required=True), dtype=float)
     count = positions.shape[0]
     velocities = particles.take("v", _vectors, default=None)
@@ -244,7 +264,9 @@ def _explicit_topology(particles: _Table, springs_table: Optional[_Table], has_d
     if velocities.shape != positions.shape:
         raise InputError("v", f"has {velocities.shape[0]} velocities for {count} particles", "give one per particle")
     mass = particles.take("mass", _positive_values, default=1.0)
-    mass = np.broadcast_to(np.asarray(mass, dtype=float), (count,)) if np.ndim(mass) == 0 or len(mass) == count else None
+    mass = (
+        np.broadcast_to(np.asarray(mass, dtype=float), (count,)) if np.ndim(mass) == 0 or len(mass) == count else None
+    )
     if mass is None:
         raise InputError("mass", f"needs 1 or {count} values", "give one mass per particle or one for all")
     pinned = particles.take("pinned", _index_list, default=[])
@@ -260,7 +282,11 @@ def _explicit_topology(particles: _Table, springs_table: Optional[_Table], has_d
         springs = np.asarray(springs_table.take("pairs", _index_pairs, required=True), dtype=np.int64).reshape(-1, 2)
         rest_length = springs_table.take("rest_length", _non_negative_values, default=None)
         if rest_length is not None and np.ndim(rest_length) == 1 and len(rest_length) != springs.shape[0]:
-            raise InputError("springs.rest_length", f"has {len(rest_length)} values for {springs.shape[0]} springs", "give one per spring")
+            raise InputError(
+                "springs.rest_length",
+                f"has {len(rest_length)} values for {springs.shape[0]} springs",
+                "give one per spring",
+            )
         springs_table.finish()
     try:
         check = make_model(springs, np.ones(count), positions=positions, pinned=pinned)
@@ -271,8 +297,14 @@ def _explicit_topology(particles: _Table, springs_table: Optional[_Table], has_d
     if faces.size and (faces.min() < 0 or faces.max() >= count):
         raise InputError("particles.faces", f"particle index out of range 0..{count - 1}", "fix the triangle list")
     return dict(
-        positions=positions, velocities=velocities, springs=springs, rest_length=rest_length,
-        mass=mass, pinned=pinned, drag=drag, faces=faces,
+        positions=positions,
+        velocities=velocities,
+        springs=springs,
+        rest_length=rest_length,
+        mass=mass,
+        pinned=pinned,
+        drag=drag,
+        faces=faces,
     )
 
 

@@ -157,7 +157,12 @@ def first_bad_frame(model: Model, params: Params, x, v, threshold: float) -> int
 
 
 def locate_blowup(
-    model: Model, params: Params, good_state: State, good_step: int, max_steps: int, threshold: float,
+    model: Model,
+    params: Params,
+    good_state: State,
+    good_step: int,
+    max_steps: int,
+    threshold: float,
     stability: StabilityEstimate,
 ) -> BlowUp:
     """Re-run step by step from the last good state to find the exact first bad step."""

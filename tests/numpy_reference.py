@@ -74,6 +74,15 @@ def reference_for_scene(scene, steps, save_every=1, params=None):
     model = scene.model
     values = {k: np.asarray(v) for k, v in (params or scene.params).to_dict().items()}
     return reference_rollout(
-        scene.state.x, scene.state.v, model.springs, model.rest_length, model.mass,
-        model.pinned, model.drag, values, model.dt, steps, save_every,
+        scene.state.x,
+        scene.state.v,
+        model.springs,
+        model.rest_length,
+        model.mass,
+        model.pinned,
+        model.drag,
+        values,
+        model.dt,
+        steps,
+        save_every,
     )

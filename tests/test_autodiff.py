@@ -69,8 +69,10 @@ def test_vmap_over_parameters_equals_separate_rollouts(scenes):
 def test_vmap_over_initial_states_equals_separate_rollouts(scenes):
     scene = scenes["cloth"]
     kicks = jnp.linspace(0.0, 2.0, 8)
-    states = js.State(x=jnp.broadcast_to(scene.state.x, (8,) + scene.state.x.shape),
-                      v=scene.state.v[None] + kicks[:, None, None] * jnp.array([0.0, 1.0, 0.0]))
+    states = js.State(
+        x=jnp.broadcast_to(scene.state.x, (8,) + scene.state.x.shape),
+        v=scene.state.v[None] + kicks[:, None, None] * jnp.array([0.0, 1.0, 0.0]),
+    )
     states = states.replace(v=states.v * (~scene.model.pinned)[None, :, None])
 
     def run(state):

@@ -16,7 +16,9 @@ from jaxspring._stability import energy_threshold
 
 def test_run_writes_file_and_summary(tmp_path, capsys):
     out = tmp_path / "chain.h5"
-    code = main(["run", "chain", "--steps", "400", "--save-every", "20", "--set", "ks=600", "--out", str(out), "--quiet"])
+    code = main(
+        ["run", "chain", "--steps", "400", "--save-every", "20", "--set", "ks=600", "--out", str(out), "--quiet"]
+    )
     assert code == 0
     text = capsys.readouterr().out
     assert "400 steps" in text and "steps/s" in text and "energy" in text and str(out) in text
@@ -38,7 +40,9 @@ def test_run_float64_dtype(tmp_path):
 
 def test_blowup_reports_exact_step_and_stable_dt(tmp_path, capsys):
     out = tmp_path / "chain.h5"
-    code = main(["run", "chain", "--set", "ks=4e6", "--steps", "2000", "--save-every", "100", "--out", str(out), "--quiet"])
+    code = main(
+        ["run", "chain", "--set", "ks=4e6", "--steps", "2000", "--save-every", "100", "--out", str(out), "--quiet"]
+    )
     err = capsys.readouterr().err
     assert code == 2 and not out.exists()
     assert "warning" in err.splitlines()[0]  # the analyser warns before the run
@@ -99,7 +103,9 @@ def test_render_png_and_gif(tmp_path, capsys):
 def test_demo_on_a_fresh_process(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "jaxspring", "demo", "--out-dir", str(tmp_path / "demo")],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert result.returncode == 0, result.stderr
     for name in js.builtin_scenes():

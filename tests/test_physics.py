@@ -85,7 +85,7 @@ def test_zero_length_spring_finite_force_and_gradients():
         force = model.force(params, x, v)
         assert np.all(np.isfinite(np.asarray(force)))
 
-        def loss(p, x0):
+        def loss(p, x0, model=model, v=v):
             state = js.State(x=x0, v=v)
             traj = js.rollout(model, p, state, steps=20, save_every=20)
             return jnp.sum(traj.x[-1] ** 2) + jnp.sum(traj.v[-1] ** 2)

@@ -133,7 +133,9 @@ def test_error_through_the_console_script_has_no_traceback(tmp_path):
     bad.write_text(GOOD.replace("ks = 100.0", "ks = -1.0"))
     result = subprocess.run(
         [sys.executable, "-m", "jaxspring", "run", str(bad), "--out", str(tmp_path / "o.h5")],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr

@@ -29,7 +29,9 @@ def test_round_trip_is_exact(tmp_path, jelly_run):
     for name, value in scene.params.to_dict().items():
         np.testing.assert_array_equal(np.asarray(getattr(loaded_scene.params, name)), np.asarray(value))
     for field in ("springs", "rest_length", "mass", "pinned", "drag"):
-        np.testing.assert_array_equal(np.asarray(getattr(loaded_scene.model, field)), np.asarray(getattr(scene.model, field)))
+        np.testing.assert_array_equal(
+            np.asarray(getattr(loaded_scene.model, field)), np.asarray(getattr(scene.model, field))
+        )
     np.testing.assert_array_equal(loaded_scene.faces, scene.faces)
     # the rebuilt scene continues the same physics
     again = js.rollout(loaded_scene.model, loaded_scene.params, loaded_scene.state, steps=100, save_every=20)
@@ -88,9 +90,15 @@ def test_missing_truncated_and_foreign_files(tmp_path, jelly_run):
 def test_custom_topology_round_trip(tmp_path):
     """A scene that is not one of the four: explicit particles, per-spring stiffness."""
     doc = {
-        "dt": 0.001, "steps": 40, "save_every": 20,
+        "dt": 0.001,
+        "steps": 40,
+        "save_every": 20,
         "physics": {"ks": [100.0, 200.0, 300.0], "kd": 0.5, "cd": 0.01},
-        "particles": {"x": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], "pinned": [0], "drag": [False, True, True, True]},
+        "particles": {
+            "x": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+            "pinned": [0],
+            "drag": [False, True, True, True],
+        },
         "springs": {"pairs": [[0, 1], [1, 2], [2, 3]]},
     }
     scene = js.scene_from_dict(doc)
