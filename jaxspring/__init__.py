@@ -14,7 +14,7 @@ from ._forces import TERMS, safe_norm
 from ._integrators import INTEGRATORS, semi_implicit_euler
 from ._model import Model, check_params, make_model
 from ._params import Params
-from ._render import render
+from ._render import plot_fit, render
 from ._rollout import energy, final_state, rollout
 from ._scene import Scene, builtin_scenes, load_scene, scene_from_dict
 from ._stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup
@@ -53,4 +53,14 @@ __all__ = [
     "save_trajectory",
     "scene_from_dict",
     "semi_implicit_euler",
+]
+
+from ._experiment import Experiment, load_experiment, observations_from_file  # noqa: E402
+from ._fit_files import load_fit_progress, save_fit  # noqa: E402
+from ._fit import FitProgress, FitResult, FitSettings, Identifiability, fit, fit_batch, identifiability  # noqa: E402
+from ._observations import Observations, observations_from_trajectory, synthetic_observations  # noqa: E402
+
+__all__ += [
+    "Experiment", "load_experiment", "observations_from_file", "load_fit_progress", "save_fit", "FitProgress", "FitResult", "FitSettings", "Identifiability", "Observations", "fit", "fit_batch",
+    "identifiability", "observations_from_trajectory", "synthetic_observations",
 ]

@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 EXIT_USER_ERROR = 2
 
 
@@ -42,6 +44,21 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--max-frames", type=int, default=60, help="frames in a GIF (default: 60)")
     render.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    fit = sub.add_parser("fit", help="fit physical parameters to a recorded or synthetic trajectory")
+    fit.add_argument("experiment", nargs="?", help="experiment TOML file (optional with --target)")
+    fit.add_argument("--target", help="trajectory file to fit (default: the experiment's target)")
+    fit.add_argument("--params", help="comma-separated parameters to fit, e.g. ks,kd,cd")
+    fit.add_argument("--init", help="start values, e.g. ks=400,kd=2")
+    fit.add_argument("--out", help="fit file (default: NAME.fit.h5); a loss/parameter plot goes beside it (.png)")
+    fit.add_argument("--resume", action="store_true", help="continue an interrupted fit from --out")
+    fit.add_argument("--optimizer", choices=["lbfgs", "adam"], help="optimizer (default: the experiment's, else lbfgs)")
+    fit.add_argument("--strategy", choices=["auto", "direct", "curriculum", "shooting"], help="long-horizon strategy")
+    fit.add_argument("--iterations", type=int, help="most iterations per stage")
+    fit.add_argument("--noise", type=float, help="relative observation noise of a synthetic target")
+    fit.add_argument("--checkpoint-every", type=int, default=5, help="iterations between checkpoints (default 5)")
+    fit.add_argument("--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)")
+    fit.add_argument("--quiet", action="store_true", help="no progress bar")
+
     demo = sub.add_parser("demo", help="run the four seed scenes; write trajectories, pictures and movies")
     demo.add_argument("--out-dir", default="demo_output", help="folder to write into (default: demo_output)")
     demo.add_argument("--no-movies", action="store_true", help="skip the GIFs (faster)")
@@ -64,7 +81,7 @@ def main(argv=None) -> int:
             import jax
 
             jax.config.update("jax_enable_x64", True)
-        handler = {"run": _cmd_run, "render": _cmd_render, "demo": _cmd_demo}[args.command]
+        handler = {"run": _cmd_run, "render": _cmd_render, "demo": _cmd_demo, "fit": _cmd_fit}[args.command]
         return handler(args) or 0
     except JaxspringError as exc:
         print(f"jaxspring: error: {exc}", file=sys.stderr)
@@ -183,6 +200,118 @@ def _cmd_render(args):
     _check_out_folder(out)
     _render_with_progress(scene, trajectory, out, args.frame, args.max_frames, args.quiet, f"render {out.name}")
     print(f"wrote {out}")
+
+
+def _parse_values(text) -> dict:
+    """"ks=400,kd=2" -> {"ks": 400.0, "kd": 2.0}."""
+    return _parse_sets([item for item in (text or "").split(",") if item.strip()])
+
+
+def _fit_problem(args):
+    """(experiment, observations, names, init, settings, config) from the command line."""
+    import dataclasses
+
+    from ._errors import InputError
+    from ._experiment import Experiment, load_experiment, observations_from_file
+    from ._files import load_trajectory
+    from ._fit import FitSettings
+
+    if args.experiment:
+        experiment = load_experiment(args.experiment)
+    elif args.target:
+        recorded, _ = load_trajectory(args.target)
+        experiment = Experiment(name=Path(args.target).stem, scene=recorded, params=(), init={}, settings=FitSettings())
+    else:
+        raise InputError("fit", "nothing to fit", "give an EXPERIMENT.toml or --target FILE.h5")
+    if args.params:
+        experiment = experiment.replace(params=tuple(p.strip() for p in args.params.split(",") if p.strip()))
+    if not experiment.params:
+        raise InputError("--params", "no parameters named", "give e.g. --params ks,kd,cd")
+    init = dict(experiment.init)
+    init.update(_parse_values(args.init))
+    changes = {k: getattr(args, k) for k in ("optimizer", "strategy", "iterations") if getattr(args, k) is not None}
+    settings = dataclasses.replace(experiment.settings, **changes).validate()
+    if args.noise is not None:
+        if args.noise < 0:
+            raise InputError("--noise", "must be >= 0", "give a relative noise level such as 0.01")
+        experiment = experiment.replace(noise=args.noise)
+    if args.target:
+        observations = observations_from_file(experiment.scene, args.target)
+    else:
+        observations = experiment.observations()
+    config = {
+        "experiment": str(args.experiment) if args.experiment else None,
+        "target": str(args.target or experiment.target_file or "synthetic"),
+        "params": list(experiment.params),
+        "init": {k: np.asarray(v).tolist() for k, v in sorted(init.items())},
+        **{f"settings.{k}": v for k, v in dataclasses.asdict(settings).items()},
+        "noise": experiment.noise, "steps": experiment.steps, "save_every": experiment.save_every,
+        "seed": experiment.seed, "dtype": args.dtype,
+    }
+    return experiment, observations, experiment.params, init, settings, config
+
+
+def _cmd_fit(args):
+    import copy
+    import signal
+
+    from tqdm.auto import tqdm
+
+    from ._errors import InputError
+    from ._fit import fit_batch
+    from ._fit_files import load_fit_progress, save_fit
+    from ._render import plot_fit
+
+    if args.checkpoint_every < 1:
+        raise InputError("--checkpoint-every", "must be >= 1", "give a positive number of iterations")
+    experiment, observations, names, init, settings, config = _fit_problem(args)
+    scene = experiment.scene
+    default = Path(args.experiment).stem if args.experiment else Path(args.target).stem
+    out = Path(args.out or f"{default}.fit.h5")
+    _check_out_folder(out)
+    progress = load_fit_progress(out, config, names) if args.resume else None
+    present = scene.params.to_dict()
+    initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
+    latest = [None]
+    bar = tqdm(
+        total=settings.iterations, desc=f"fit {experiment.name}", unit="it", file=sys.stderr,
+        disable=args.quiet or not sys.stderr.isatty(), leave=False,
+    )
+
+    def on_iteration(current, stages):
+        snapshot = copy.copy(current)
+        snapshot.loss, snapshot.stage_of_iteration = list(current.loss), list(current.stage_of_iteration)
+        snapshot.values = {n: list(v) for n, v in current.values.items()}
+        latest[0] = snapshot
+        if current.loss:
+            values = " ".join(f"{n}={float(np.mean(np.exp(np.asarray(current.theta[n])))):.5g}" for n in names)
+            bar.set_description(f"fit {experiment.name} stage {min(current.stage, len(stages) - 1) + 1}/{len(stages)}")
+            bar.set_postfix_str(f"loss={float(np.asarray(current.loss[-1])[0]):.3e} {values}", refresh=False)
+            bar.n = current.iteration
+            bar.refresh()
+        if current.done or current.iteration == 0 or len(current.loss) % args.checkpoint_every == 0:
+            save_fit(out, config, names, initial, snapshot)
+
+    def terminate(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        with bar:
+            result = fit_batch(scene, [observations], names, [init], settings, progress=progress, on_iteration=on_iteration)[0]
+        final = latest[0] or progress
+        save_fit(out, config, names, initial, final, result)
+    except KeyboardInterrupt:
+        if latest[0] is not None:
+            save_fit(out, config, names, initial, latest[0])
+            done = len(latest[0].loss)
+            print(f"jaxspring: interrupted after {done} iterations; saved to {out}; continue with --resume", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    plot = plot_fit(result, out.with_suffix(".png"))
+    print(result.table())
+    print(f"wrote {out} and {plot}")
 
 
 def _cmd_demo(args):

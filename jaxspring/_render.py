@@ -101,3 +101,39 @@ class _Drawer:
             ax.scatter(*p[self.pinned].T, s=30, color="black", marker="s", depthshade=False)
         ax.set_title(f"{self.scene.name}   t = {self.t[index]:.2f} s")
         return []
+
+
+def plot_fit(result, out) -> Path:
+    """Loss and parameter histories of a fit as a PNG, written atomically.
+
+    Example:
+        >>> js.plot_fit(result, "chain.fit.png")
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    names = result.names
+    fig, axes = plt.subplots(1, 1 + len(names), figsize=(3.6 * (1 + len(names)), 3.4), dpi=90)
+    iterations = np.arange(len(result.loss_history))
+    axes[0].semilogy(iterations, np.maximum(result.loss_history, 1e-300), color="black")
+    axes[0].set(xlabel="iteration", ylabel="loss [m²]", title="loss")
+    changes = np.nonzero(np.diff(result.stage_of_iteration))[0] + 1
+    for ax, name in zip(axes[1:], names):
+        history = np.asarray(result.value_history[name]).reshape(len(iterations), -1).mean(axis=1)
+        ax.plot(iterations, history, color="tab:blue", label="fit")
+        if result.truth and name in result.truth:
+            ax.axhline(float(np.mean(result.truth[name])), color="tab:green", linestyle="--", label="true")
+            ax.legend(loc="best", fontsize=8)
+        ax.set(xlabel="iteration", title=name)
+    for ax in axes:
+        for c in changes:
+            ax.axvline(c, color="0.7", linewidth=0.8)
+    fig.suptitle("fit: " + " -> ".join(f"{s.kind}({s.frames})" for s in result.stages), fontsize=9)
+    fig.tight_layout()
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+    return out

@@ -1,0 +1,559 @@
+"""Parameter identification: fit physical parameters by differentiating through rollouts.
+
+The fit minimises the mean squared position error over the observed particles and
+frames. Positive parameters are optimised in log space. Long targets are fitted in
+stages: a horizon curriculum (short, then longer) or multiple shooting (short
+segments started from recorded states) followed by a full-horizon polish, so the
+final answer is always the full-horizon least-squares fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+
+from ._errors import InputError
+from ._observations import Observations
+from ._params import NON_NEGATIVE
+from ._rollout import rollout
+from ._scene import Scene
+from ._state import State
+
+FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
+OPTIMIZERS = ("lbfgs", "adam")
+STRATEGIES = ("auto", "direct", "curriculum", "shooting")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    """How to fit.
+
+    Attributes:
+        optimizer: "lbfgs" (default: fewest iterations on the seed scenes) or "adam".
+        iterations: most iterations per stage.
+        learning_rate: Adam's step in log-parameter space.
+        clip: Adam's gradient clipping (global norm).
+        strategy: "direct" (whole horizon at once), "curriculum" (horizons 1/8, 1/4,
+            1/2, 1 of the target), "shooting" (segments of `segment_frames` frames from
+            recorded states, then the whole horizon), or "auto": direct up to
+            `long_horizon_steps` steps without ground contact; beyond that, or when the
+            target touches the ground, shooting when full states were recorded, else
+            curriculum.
+        segment_frames: frames per multiple-shooting segment.
+        long_horizon_steps: targets longer than this count as long.
+        tolerance: a stage stops when the loss improves by less than this fraction over 5 iterations,
+            or falls below `tolerance**2` times its first value (converged to round-off).
+        step_tolerance: the last stage stops when no log-parameter moved by more than this in an iteration.
+        warmup_step_tolerance: the same for the earlier (curriculum or shooting) stages, which only
+            need to bring the parameters close.
+    """
+
+    optimizer: str = "lbfgs"
+    iterations: int = 100
+    learning_rate: float = 0.05
+    clip: float = 1.0
+    strategy: str = "auto"
+    segment_frames: int = 10
+    long_horizon_steps: int = 2000
+    tolerance: float = 1e-9
+    step_tolerance: float = 1e-9
+    warmup_step_tolerance: float = 1e-6
+
+    def validate(self):
+        if self.optimizer not in OPTIMIZERS:
+            raise InputError("optimizer", f"unknown optimizer {self.optimizer!r}", f"use one of {', '.join(OPTIMIZERS)}")
+        if self.strategy not in STRATEGIES:
+            raise InputError("strategy", f"unknown strategy {self.strategy!r}", f"use one of {', '.join(STRATEGIES)}")
+        for name in ("iterations", "segment_frames", "long_horizon_steps"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(name, "must be >= 1", f"set a positive {name}")
+        for name in ("learning_rate", "clip", "tolerance", "step_tolerance", "warmup_step_tolerance"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(name, "must be a finite number > 0", f"set a positive {name}")
+        return self
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of a fit: `kind` "direct" over `frames` frames, or "shooting" with segments of `frames` frames."""
+
+    kind: str
+    frames: int
+
+
+def plan_stages(observations: Observations, settings: FitSettings, scene: Scene | None = None) -> list[Stage]:
+    """The stages a fit runs through (see FitSettings.strategy)."""
+    total = observations.frame_count - 1
+    strategy = settings.strategy
+    if strategy == "auto":
+        if observations.steps <= settings.long_horizon_steps and not _touches_ground(scene, observations):
+            strategy = "direct"
+        else:
+            strategy = "shooting" if observations.full else "curriculum"
+    if strategy == "shooting":
+        if not observations.full:
+            raise InputError(
+                "strategy", "multiple shooting needs full recorded states of every particle",
+                "use curriculum, or observe all particles",
+            )
+        segment = min(settings.segment_frames, total)
+        return [Stage("shooting", segment), Stage("direct", total)]
+    if strategy == "curriculum":
+        horizons = sorted({max(2, min(total, math.ceil(total * f))) for f in (0.125, 0.25, 0.5, 1.0)})
+        return [Stage("direct", h) for h in horizons]
+    return [Stage("direct", total)]
+
+
+def _touches_ground(scene: Scene | None, observations: Observations) -> bool:
+    """Whether the target reaches the ground plane (contact makes the loss landscape rough)."""
+    if scene is None or not scene.model.has("ground"):
+        return False
+    return bool(np.min(observations.x[..., 1]) < float(scene.params.ground_height))
+
+
+def _check_names(scene: Scene, names, init: dict | None):
+    names = tuple(names)
+    if not names:
+        raise InputError("params", "nothing to fit", "name at least one parameter, e.g. ks")
+    present = scene.params.to_dict()
+    for name in names:
+        if name not in FITTABLE:
+            raise InputError("params", f"{name!r} cannot be fitted", f"fit some of {', '.join(FITTABLE)}")
+        if name not in present:
+            raise InputError(
+                "params", f"the scene has no parameter {name!r} (its terms are {', '.join(scene.model.terms)})",
+                f"fit some of {', '.join(n for n in present if n in FITTABLE)}",
+            )
+    for name, value in (init or {}).items():
+        if name not in names:
+            raise InputError("init", f"{name!r} is given a start value but is not fitted", "add it to the fitted params")
+        value = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(value)) or np.any(value <= 0):
+            raise InputError(f"init.{name}", f"must be > 0 (fitted in log space), got {value}", "give a positive start value")
+    return names
+
+
+def _loss_function(scene: Scene, observations: Observations, names, stage: Stage):
+    """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
+    model, base = scene.model, scene.params
+    particles = jnp.asarray(observations.particles)
+    every = observations.save_every
+
+    def params_of(theta):
+        return base.replace(**{n: jnp.exp(theta[n]) for n in names})
+
+    if stage.kind == "direct":
+        frames = stage.frames
+
+        def loss(theta, data):
+            start = State(x=data["x0"], v=data["v0"])
+            x = rollout(model, params_of(theta), start, steps=frames * every, save_every=every).x
+            return jnp.mean((x[1:, particles] - data["x"][1 : frames + 1]) ** 2)
+
+        return loss
+    segment = stage.frames
+
+    def loss(theta, data):
+        params = params_of(theta)
+        count = (data["x"].shape[0] - 1) // segment
+        starts = State(x=data["states_x"][0 : count * segment : segment], v=data["states_v"][0 : count * segment : segment])
+        target = data["x"][1 : count * segment + 1].reshape((count, segment) + data["x"].shape[1:])
+        run = lambda s: rollout(model, params, s, steps=segment * every, save_every=every).x[1:]  # noqa: E731
+        return jnp.mean((jax.vmap(run)(starts)[:, :, particles] - target) ** 2)
+
+    return loss
+
+
+def _target_data(observations: Observations) -> dict:
+    data = {"x": jnp.asarray(observations.x), "x0": observations.initial_state.x, "v0": observations.initial_state.v}
+    if observations.states is not None:
+        data["states_x"] = jnp.asarray(observations.states.x)
+        data["states_v"] = jnp.asarray(observations.states.v)
+    return data
+
+
+def _optimizer(settings: FitSettings):
+    if settings.optimizer == "lbfgs":
+        return optax.lbfgs()
+    return optax.chain(optax.clip_by_global_norm(settings.clip), optax.adam(settings.learning_rate))
+
+
+def _step_function(loss, settings: FitSettings, data_batched: bool):
+    optimizer = _optimizer(settings)
+
+    def single(theta, opt_state, data):
+        value_fn = lambda th: loss(th, data)  # noqa: E731
+        if settings.optimizer == "lbfgs":
+            value, grad = optax.value_and_grad_from_state(value_fn)(theta, state=opt_state)
+            updates, opt_state = optimizer.update(grad, opt_state, theta, value=value, grad=grad, value_fn=value_fn)
+        else:
+            value, grad = jax.value_and_grad(value_fn)(theta)
+            updates, opt_state = optimizer.update(grad, opt_state, theta)
+        return optax.apply_updates(theta, updates), opt_state, value
+
+    step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if data_batched else None)))
+    init = jax.jit(jax.vmap(optimizer.init))
+    value = jax.jit(jax.vmap(loss, in_axes=(0, 0 if data_batched else None)))
+    return step, init, value
+
+
+@dataclasses.dataclass
+class FitProgress:
+    """Everything needed to continue a fit exactly where it stopped (saved in fit files).
+
+    Attributes:
+        stage: index of the current stage.
+        iteration: iterations done in the current stage.
+        theta: log parameter values, name -> (B, ...).
+        optimizer_leaves: the optimizer state's arrays (its structure is rebuilt from the settings).
+        loss: loss before each completed iteration, list of (B,) arrays.
+        values: parameter values before each completed iteration, name -> list of (B, ...) arrays.
+        stage_of_iteration: stage index of each completed iteration.
+        last_step: largest log-parameter change of the last iteration, per member (B,).
+        done: whether the fit finished.
+        wall_s: time spent so far [s].
+    """
+
+    stage: int
+    iteration: int
+    theta: dict
+    optimizer_leaves: Optional[list]
+    loss: list
+    values: dict
+    stage_of_iteration: list
+    last_step: Optional[np.ndarray] = None
+    done: bool = False
+    wall_s: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Identifiability:
+    """Gauss-Newton uncertainty at the optimum.
+
+    Attributes:
+        standard_error: name -> standard error of the parameter (same units).
+        relative_standard_error: name -> standard error / value.
+        correlation: (P, P) correlation matrix of the (log) parameters, in `names` order.
+        names: parameter names of the correlation matrix's rows.
+        noise_std: residual standard deviation [m] used for the estimate.
+        warnings: plain-language warnings (not identifiable, poorly determined, confounded).
+    """
+
+    standard_error: dict
+    relative_standard_error: dict
+    correlation: np.ndarray
+    names: tuple
+    noise_std: float
+    warnings: tuple
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """The outcome of a fit (one member; `fit_batch` returns a list of these).
+
+    Attributes:
+        names: fitted parameter names.
+        initial, final: name -> value at the start and at the end.
+        loss_history: loss [m^2] before each iteration, then the final loss, shape (iterations + 1,).
+        value_history: name -> value before each iteration, then the final value.
+        stages: the stages run; stage_of_iteration says which stage each iteration belongs to.
+        iterations: iterations run in all.
+        wall_s: wall time [s].
+        identifiability: Gauss-Newton standard errors and correlations (None if skipped).
+        truth: true values when known (synthetic targets).
+    """
+
+    names: tuple
+    initial: dict
+    final: dict
+    loss_history: np.ndarray
+    value_history: dict
+    stages: tuple
+    stage_of_iteration: np.ndarray
+    iterations: int
+    wall_s: float
+    identifiability: Optional[Identifiability]
+    truth: Optional[dict] = None
+
+    @property
+    def final_loss(self) -> float:
+        return float(self.loss_history[-1])
+
+    def relative_errors(self) -> dict:
+        """name -> |final - true| / |true| (max over items for per-item parameters), when the truth is known."""
+        if not self.truth:
+            return {}
+        return {
+            n: float(np.max(np.abs(np.asarray(self.final[n]) - self.truth[n]) / np.abs(self.truth[n])))
+            for n in self.names
+            if n in self.truth
+        }
+
+    def table(self) -> str:
+        """A plain-text table: fitted value, true value, relative error, standard error."""
+        ident = self.identifiability
+        rows = [f"{'param':<7}{'initial':>12}{'fitted':>14}{'true':>12}{'rel. error':>12}{'std. error':>12}"]
+        errors = self.relative_errors()
+        for n in self.names:
+            value = np.asarray(self.final[n])
+            true = "" if not self.truth or n not in self.truth else _short(self.truth[n])
+            rel = f"{errors[n]:.2e}" if n in errors else ""
+            se = _short(ident.standard_error[n]) if ident else ""
+            rows.append(f"{n:<7}{_short(self.initial[n]):>12}{_short(value):>14}{true:>12}{rel:>12}{se:>12}")
+        rows.append(f"final loss {self.final_loss:.4g} m^2 after {self.iterations} iterations in {self.wall_s:.2f} s")
+        if ident:
+            rows += [f"warning: {w}" for w in ident.warnings]
+        return "\n".join(rows)
+
+
+def _short(value) -> str:
+    value = np.asarray(value)
+    if value.ndim == 0:
+        return f"{float(value):.6g}"
+    return f"mean {float(value.mean()):.4g}"
+
+
+def fit(
+    scene: Scene,
+    observations: Observations,
+    params=("ks", "kd"),
+    init: dict | None = None,
+    settings: FitSettings | None = None,
+    **kwargs,
+) -> FitResult:
+    """Fit `params` of `scene` to `observations` by gradient-based optimisation through rollouts.
+
+    Args:
+        scene: the model and its other parameters (held fixed).
+        observations: the target (see `observations_from_trajectory`, `synthetic_observations`).
+        params: names to fit, e.g. ("ks", "kd", "cd").
+        init: start values (name -> positive value); default: the scene's values.
+        settings: a FitSettings; keyword arguments override its fields.
+    Returns:
+        FitResult with the fitted values, histories and the identifiability report.
+
+    Example:
+        >>> obs = js.synthetic_observations(scene, {"ks": 1000.0, "kd": 5.0, "cd": 0.05}, 1000, 10)
+        >>> result = js.fit(scene, obs, ["ks", "kd", "cd"], init={"ks": 400.0, "kd": 12.0, "cd": 0.15})
+        >>> print(result.table())
+    """
+    return fit_batch(scene, [observations], params, [init or {}], settings, **kwargs)[0]
+
+
+def fit_batch(
+    scene: Scene,
+    observations: list[Observations],
+    params=("ks", "kd"),
+    inits: list[dict] | None = None,
+    settings: FitSettings | None = None,
+    progress: Optional[FitProgress] = None,
+    on_iteration: Optional[Callable[[FitProgress, list[Stage]], None]] = None,
+    identify: bool = True,
+    **kwargs,
+) -> list[FitResult]:
+    """Fit several starting guesses (multi-start) and/or several targets at once with `vmap`.
+
+    `observations` holds one target (shared by all members) or one per member;
+    `inits` one start per member (default: one member starting at the scene's values).
+    `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
+    after every iteration (the CLI checkpoints from it).
+
+    Example:
+        >>> results = js.fit_batch(scene, [obs], ["ks", "kd"], inits=[{"ks": 300.0}, {"ks": 3000.0}])
+        >>> [r.final["ks"] for r in results]
+    """
+    settings = dataclasses.replace(settings or FitSettings(), **kwargs).validate()
+    inits = list(inits) if inits else [{}]
+    if len(observations) not in (1, len(inits)):
+        if len(inits) == 1:
+            inits = inits * len(observations)
+        else:
+            raise InputError("observations", f"{len(observations)} targets for {len(inits)} starts", "give one target or one per start")
+    names = tuple(params)
+    for init in inits:
+        _check_names(scene, names, init)
+    members = len(inits)
+    shapes = [o.x.shape for o in observations]
+    if len(set(shapes)) != 1:
+        raise InputError("observations", f"targets differ in shape {shapes}", "give targets of equal length and particles")
+    reference = observations[0]
+    batched_data = len(observations) > 1
+    if batched_data:
+        data = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[_target_data(o) for o in observations])
+    else:
+        data = _target_data(reference)
+    stages = plan_stages(reference, settings, scene)
+    present = scene.params.to_dict()
+    start_values = [{n: jnp.asarray(init.get(n, present[n]), dtype=float) for n in names} for init in inits]
+    if progress is None:
+        theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], present[n].shape)) for s in start_values]) for n in names}
+        progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
+    start_clock = time.perf_counter() - progress.wall_s
+    while not progress.done:
+        stage = stages[progress.stage]
+        loss = _loss_function(scene, reference, names, stage)
+        step, init_opt, _ = _step_function(loss, settings, batched_data)
+        opt_state = init_opt(progress.theta)
+        if progress.optimizer_leaves is not None:
+            structure = jax.tree_util.tree_structure(opt_state)
+            opt_state = jax.tree_util.tree_unflatten(structure, [jnp.asarray(a) for a in progress.optimizer_leaves])
+        final_stage = progress.stage == len(stages) - 1
+        while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage):
+            values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
+            theta, opt_state, value = step(progress.theta, opt_state, data)
+            progress.last_step = np.max(
+                np.stack([np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]),
+                axis=0,
+            )
+            progress.theta = theta
+            progress.loss.append(np.asarray(value))
+            for n in names:
+                progress.values[n].append(values[n])
+            progress.stage_of_iteration.append(progress.stage)
+            progress.iteration += 1
+            progress.optimizer_leaves = [np.asarray(a) for a in jax.tree_util.tree_leaves(opt_state)]
+            progress.wall_s = time.perf_counter() - start_clock
+            if on_iteration:
+                on_iteration(progress, stages)
+        progress.stage += 1
+        progress.iteration = 0
+        progress.optimizer_leaves = None
+        progress.last_step = None
+        progress.done = progress.stage >= len(stages)
+        progress.wall_s = time.perf_counter() - start_clock
+        if on_iteration:
+            on_iteration(progress, stages)
+    return _results(scene, observations, names, start_values, settings, stages, progress, batched_data, identify)
+
+
+def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool) -> bool:
+    """Whether every member has converged in the current stage (see FitSettings)."""
+    if progress.last_step is not None:
+        limit = settings.step_tolerance if final_stage else settings.warmup_step_tolerance
+        if np.all(progress.last_step <= limit):
+            return True
+    in_stage = [loss for loss, s in zip(progress.loss, progress.stage_of_iteration) if s == progress.stage]
+    if len(in_stage) < 2:
+        return False
+    first, now = np.asarray(in_stage[0]), np.asarray(in_stage[-1])
+    if np.all(now <= settings.tolerance**2 * first):
+        return True
+    if len(in_stage) < 6:
+        return False
+    before = np.asarray(in_stage[-6])
+    return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))
+
+
+def _results(scene, observations, names, start_values, settings, stages, progress, batched_data, identify):
+    final_stage = stages[-1]
+    loss = _loss_function(scene, observations[0], names, final_stage)
+    _, _, value = _step_function(loss, settings, batched_data)
+    data = (
+        jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[_target_data(o) for o in observations])
+        if batched_data
+        else _target_data(observations[0])
+    )
+    final_loss = np.asarray(value(progress.theta, data))
+    results = []
+    for member, start in enumerate(start_values):
+        obs = observations[member if batched_data else 0]
+        final = {n: np.asarray(jnp.exp(progress.theta[n][member])) for n in names}
+        history = np.array([np.asarray(l)[member] for l in progress.loss] + [final_loss[member]])
+        value_history = {n: np.array([v[member] for v in progress.values[n]] + [final[n]]) for n in names}
+        ident = identifiability(scene, obs, names, final) if identify else None
+        results.append(
+            FitResult(
+                names=names, initial={n: np.asarray(start[n]) for n in names}, final=final,
+                loss_history=history, value_history=value_history, stages=tuple(stages),
+                stage_of_iteration=np.asarray(progress.stage_of_iteration, dtype=int),
+                iterations=len(progress.loss), wall_s=progress.wall_s, identifiability=ident,
+                truth={n: obs.truth[n] for n in names if n in obs.truth} if obs.truth else None,
+            )
+        )
+    return results
+
+
+def identifiability(scene: Scene, observations: Observations, names, values: dict, max_parameters: int = 64):
+    """Gauss-Newton standard errors and correlations of `values` for the full-horizon fit.
+
+    With residuals r (observed minus simulated positions) and J = dr/d(log p), the
+    covariance of log p is s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - P); a parameter's
+    standard error is its value times its log standard error. Warns when the data do
+    not depend on a parameter, when it is poorly determined (relative standard error
+    above 50%), and when two parameters are confounded (|correlation| > 0.95).
+
+    Example:
+        >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
+    """
+    names = tuple(names)
+    theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
+    flat, unravel = ravel_pytree(theta)
+    if flat.shape[0] > max_parameters:
+        return None
+    base, model = scene.params, scene.model
+    particles = jnp.asarray(observations.particles)
+    every, frames = observations.save_every, observations.frame_count - 1
+    target = jnp.asarray(observations.x)
+
+    def residuals(vector):
+        p = base.replace(**{n: jnp.exp(v) for n, v in unravel(vector).items()})
+        x = rollout(model, p, observations.initial_state, steps=frames * every, save_every=every).x
+        return (x[1:, particles] - target[1:]).reshape(-1)
+
+    r = np.asarray(residuals(flat))
+    jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
+    count, dims = r.shape[0], flat.shape[0]
+    sigma2 = float(r @ r) / max(count - dims, 1)
+    labels = _labels(theta)
+    warnings = []
+    column = np.linalg.norm(jac, axis=0)
+    dead = column <= 1e-10 * max(float(column.max()), 1e-300)
+    for i in np.nonzero(dead)[0]:
+        warnings.append(f"{labels[i]} is not identifiable: the observed motion does not depend on it")
+    # invert on unit-norm columns (so a parameter with a tiny effect is not cut off by a
+    # round-off threshold), then undo the scaling; directions the data cannot see get
+    # infinite variance rather than zero
+    scale = np.where(dead, 1.0, column)
+    scaled = jac / scale
+    eigenvalues, eigenvectors = np.linalg.eigh(scaled.T @ scaled)
+    visible = eigenvalues > 1e-13 * max(float(eigenvalues.max()), 1e-300)
+    inverse = (eigenvectors[:, visible] / eigenvalues[visible]) @ eigenvectors[:, visible].T
+    covariance = sigma2 * inverse / np.outer(scale, scale)
+    log_se = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    blind = np.abs(eigenvectors[:, ~visible]).max(axis=1) > 1e-3 if (~visible).any() else np.zeros(dims, bool)
+    log_se[dead | blind] = np.inf
+    with np.errstate(invalid="ignore", divide="ignore"):
+        correlation = covariance / np.outer(log_se, log_se)
+    correlation[~np.isfinite(correlation)] = 0.0
+    np.fill_diagonal(correlation, 1.0)
+    se_tree = unravel(jnp.asarray(log_se))
+    standard_error = {n: np.asarray(values[n]) * np.asarray(se_tree[n]) for n in names}
+    relative = {n: np.asarray(se_tree[n]) for n in names}  # d(log p) = dp / p
+    for i, label in enumerate(labels):
+        if not dead[i] and log_se[i] > 0.5:
+            warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
+    for i in range(dims):
+        for j in range(i + 1, dims):
+            if abs(correlation[i, j]) > 0.95 and not (dead[i] or dead[j]):
+                warnings.append(
+                    f"{labels[i]} and {labels[j]} are confounded (correlation {correlation[i, j]:+.3f}): "
+                    "the data constrain a combination of them, not each"
+                )
+    return Identifiability(standard_error, relative, correlation, tuple(labels), math.sqrt(sigma2), tuple(warnings))
+
+
+def _labels(theta: dict) -> list[str]:
+    labels = []
+    for name, value in sorted(theta.items()):
+        size = int(np.size(value))
+        labels += [name] if np.ndim(value) == 0 else [f"{name}[{i}]" for i in range(size)]
+    return labels

@@ -1,0 +1,106 @@
+"""Fit files (HDF5, DESIGN.md section 4): results, histories and the state needed to resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import FileFormatError, InputError
+from ._files import atomic_path
+from ._fit import FitProgress, FitResult
+
+FIT_FORMAT = "jaxspring.fit"
+FIT_FORMAT_VERSION = 1
+
+
+def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, result: FitResult | None = None) -> None:
+    """Write a single-member fit (checkpoint or final) atomically.
+
+    `config` (JSON-able) identifies the fit; `--resume` refuses a file whose config differs.
+
+    Example:
+        >>> save_fit("chain.fit.h5", config, result.names, result.initial, progress, result)
+    """
+    from . import __version__
+
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs.update(
+            format=FIT_FORMAT, format_version=FIT_FORMAT_VERSION, jaxspring_version=__version__,
+            config=json.dumps(config, sort_keys=True), done=bool(progress.done),
+        )
+        group = f.create_group("fit")
+        final = result.final if result is not None else {n: np.exp(np.asarray(progress.theta[n])[0]) for n in names}
+        group.create_group("initial").attrs.update({n: np.asarray(initial[n]) for n in names})
+        group.create_group("final").attrs.update({n: np.asarray(final[n]) for n in names})
+        history = group.create_group("history")
+        history.create_dataset("loss", data=np.array([np.asarray(v)[0] for v in progress.loss], dtype=float))
+        history.create_dataset("stage", data=np.asarray(progress.stage_of_iteration, dtype=np.int32))
+        for n in names:
+            values = [np.asarray(v)[0] for v in progress.values[n]]
+            history.create_dataset(n, data=np.array(values, dtype=float).reshape((len(values),) + np.shape(initial[n])))
+        optimizer = group.create_group("optimizer")
+        optimizer.attrs.update(stage=progress.stage, iteration=progress.iteration, wall_s=progress.wall_s)
+        if progress.last_step is not None:
+            optimizer.create_dataset("last_step", data=np.asarray(progress.last_step))
+        theta = optimizer.create_group("theta")
+        for n in names:
+            theta.create_dataset(n, data=np.asarray(progress.theta[n]))
+        if progress.optimizer_leaves is not None:
+            leaves = optimizer.create_group("state")
+            for i, leaf in enumerate(progress.optimizer_leaves):
+                leaves.create_dataset(f"{i:05d}", data=np.asarray(leaf))
+        if result is not None:
+            group.attrs["final_loss"] = result.final_loss
+            if result.truth:
+                group.create_group("true").attrs.update({n: np.asarray(v) for n, v in result.truth.items()})
+            ident = result.identifiability
+            if ident is not None:
+                group.create_group("standard_error").attrs.update({n: np.asarray(v) for n, v in ident.standard_error.items()})
+                corr = group.create_dataset("correlation", data=ident.correlation)
+                corr.attrs["names"] = list(ident.names)
+                group.attrs["warnings"] = json.dumps(list(ident.warnings))
+
+
+def load_fit_progress(path, config: dict, names) -> FitProgress:
+    """Read the resumable state of a fit file written for the same `config`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("--resume", f"{path} does not exist", "run the fit once without --resume")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise FileFormatError(f"{path}: not a readable HDF5 file; delete it and fit again without --resume") from None
+    with f:
+        if f.attrs.get("format") != FIT_FORMAT:
+            raise FileFormatError(f"{path}: not a jaxspring fit file; choose another --out")
+        saved = json.loads(f.attrs["config"])
+        if saved != json.loads(json.dumps(config, sort_keys=True)):
+            changed = sorted(k for k in set(saved) | set(config) if saved.get(k) != config.get(k))
+            raise InputError(
+                "--resume", f"{path} was written by a different fit (differs in {', '.join(changed)})",
+                "repeat the original command, or drop --resume to start over",
+            )
+        group = f["fit"]
+        history = group["history"]
+        optimizer = group["optimizer"]
+        loss = [np.array([v]) for v in history["loss"][()]]
+        values = {n: [np.asarray(v)[None] for v in history[n][()]] for n in names}
+        leaves = None
+        if "state" in optimizer:
+            leaves = [optimizer["state"][k][()] for k in sorted(optimizer["state"])]
+        return FitProgress(
+            stage=int(optimizer.attrs["stage"]),
+            iteration=int(optimizer.attrs["iteration"]),
+            theta={n: jnp.asarray(optimizer["theta"][n][()]) for n in names},
+            optimizer_leaves=leaves,
+            loss=loss,
+            values=values,
+            stage_of_iteration=[int(s) for s in history["stage"][()]],
+            last_step=optimizer["last_step"][()] if "last_step" in optimizer else None,
+            done=bool(f.attrs["done"]),
+            wall_s=float(optimizer.attrs["wall_s"]),
+        )
