@@ -47,6 +47,7 @@ __all__ = [
     "load_scene",
     "load_trajectory",
     "make_model",
+    "plot_fit",
     "render",
     "rollout",
     "safe_norm",
@@ -56,11 +57,24 @@ __all__ = [
 ]
 
 from ._experiment import Experiment, load_experiment, observations_from_file  # noqa: E402
-from ._fit_files import load_fit_progress, save_fit  # noqa: E402
 from ._fit import FitProgress, FitResult, FitSettings, Identifiability, fit, fit_batch, identifiability  # noqa: E402
+from ._fit_files import load_fit_progress, save_fit  # noqa: E402
 from ._observations import Observations, observations_from_trajectory, synthetic_observations  # noqa: E402
 
 __all__ += [
-    "Experiment", "load_experiment", "observations_from_file", "load_fit_progress", "save_fit", "FitProgress", "FitResult", "FitSettings", "Identifiability", "Observations", "fit", "fit_batch",
-    "identifiability", "observations_from_trajectory", "synthetic_observations",
+    "Experiment",
+    "load_experiment",
+    "observations_from_file",
+    "load_fit_progress",
+    "save_fit",
+    "FitProgress",
+    "FitResult",
+    "FitSettings",
+    "Identifiability",
+    "Observations",
+    "fit",
+    "fit_batch",
+    "identifiability",
+    "observations_from_trajectory",
+    "synthetic_observations",
 ]

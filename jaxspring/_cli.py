@@ -203,7 +203,7 @@ def _cmd_render(args):
 
 
 def _parse_values(text) -> dict:
-    """"ks=400,kd=2" -> {"ks": 400.0, "kd": 2.0}."""
+    """ "ks=400,kd=2" -> {"ks": 400.0, "kd": 2.0}."""
     return _parse_sets([item for item in (text or "").split(",") if item.strip()])
 
 
@@ -245,8 +245,11 @@ def _fit_problem(args):
         "params": list(experiment.params),
         "init": {k: np.asarray(v).tolist() for k, v in sorted(init.items())},
         **{f"settings.{k}": v for k, v in dataclasses.asdict(settings).items()},
-        "noise": experiment.noise, "steps": experiment.steps, "save_every": experiment.save_every,
-        "seed": experiment.seed, "dtype": args.dtype,
+        "noise": experiment.noise,
+        "steps": experiment.steps,
+        "save_every": experiment.save_every,
+        "seed": experiment.seed,
+        "dtype": args.dtype,
     }
     return experiment, observations, experiment.params, init, settings, config
 
@@ -274,8 +277,12 @@ def _cmd_fit(args):
     initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
     latest = [None]
     bar = tqdm(
-        total=settings.iterations, desc=f"fit {experiment.name}", unit="it", file=sys.stderr,
-        disable=args.quiet or not sys.stderr.isatty(), leave=False,
+        total=settings.iterations,
+        desc=f"fit {experiment.name}",
+        unit="it",
+        file=sys.stderr,
+        disable=args.quiet or not sys.stderr.isatty(),
+        leave=False,
     )
 
     def on_iteration(current, stages):
@@ -298,14 +305,19 @@ def _cmd_fit(args):
     previous = signal.signal(signal.SIGTERM, terminate)
     try:
         with bar:
-            result = fit_batch(scene, [observations], names, [init], settings, progress=progress, on_iteration=on_iteration)[0]
+            result = fit_batch(
+                scene, [observations], names, [init], settings, progress=progress, on_iteration=on_iteration
+            )[0]
         final = latest[0] or progress
         save_fit(out, config, names, initial, final, result)
     except KeyboardInterrupt:
         if latest[0] is not None:
             save_fit(out, config, names, initial, latest[0])
             done = len(latest[0].loss)
-            print(f"jaxspring: interrupted after {done} iterations; saved to {out}; continue with --resume", file=sys.stderr)
+            print(
+                f"jaxspring: interrupted after {done} iterations; saved to {out}; continue with --resume",
+                file=sys.stderr,
+            )
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -5,13 +5,12 @@ from __future__ import annotations
 import dataclasses
 import tomllib
 from pathlib import Path
-from typing import Optional
 
 from ._errors import InputError
 from ._files import load_trajectory
 from ._fit import FitSettings
 from ._observations import Observations, observations_from_trajectory, synthetic_observations
-from ._scene import Scene, _Table, _count, _index_list, _non_negative_values, _number, _string, _string_list, load_scene
+from ._scene import Scene, _count, _index_list, _non_negative_values, _number, _string, _string_list, _Table, load_scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,13 +41,13 @@ class Experiment:
     params: tuple
     init: dict
     settings: FitSettings
-    target_file: Optional[str] = None
-    true_values: Optional[dict] = None
+    target_file: str | None = None
+    true_values: dict | None = None
     steps: int = 1000
     save_every: int = 10
     noise: float = 0.0
     seed: int = 0
-    particles: Optional[list] = None
+    particles: list | None = None
     description: str = ""
 
     def replace(self, **changes) -> Experiment:
@@ -68,7 +67,8 @@ def observations_from_file(scene: Scene, path, particles=None) -> Observations:
     recorded, trajectory = load_trajectory(path)
     if recorded.model.particle_count != scene.model.particle_count:
         raise InputError(
-            "target", f"{path} has {recorded.model.particle_count} particles but the scene has {scene.model.particle_count}",
+            "target",
+            f"{path} has {recorded.model.particle_count} particles but the scene has {scene.model.particle_count}",
             "give a target recorded from this scene",
         )
     truth = {k: v for k, v in recorded.params.to_dict().items()}
@@ -109,7 +109,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     target = top.table("target", required=True)
     target_file = target.take("file", _string)
     if target_file is not None:
-        target_file = str((path.parent / target_file))
+        target_file = str(path.parent / target_file)
     steps = target.take("steps", _count, default=scene.steps)
     save_every = target.take("save_every", _count, default=scene.save_every)
     noise = target.take("noise", _number, default=0.0)
@@ -123,7 +123,9 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     if noise < 0:
         raise InputError("target.noise", "must be >= 0", "give a relative noise level such as 0.01")
     if save_every < 1 or steps < save_every or steps % save_every:
-        raise InputError("target.steps", f"{steps} is not a positive multiple of save_every={save_every}", "make it one")
+        raise InputError(
+            "target.steps", f"{steps} is not a positive multiple of save_every={save_every}", "make it one"
+        )
 
     fit_table = top.table("fit", required=True)
     params = tuple(fit_table.take("params", _string_list, required=True))
@@ -151,7 +153,17 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     if true_values:
         scene.with_params(**true_values)  # validates names, shapes and signs
     return Experiment(
-        name=name, scene=scene, params=params, init=init, settings=settings, target_file=target_file,
-        true_values=true_values, steps=steps, save_every=save_every, noise=noise, seed=seed,
-        particles=particles, description=description,
+        name=name,
+        scene=scene,
+        params=params,
+        init=init,
+        settings=settings,
+        target_file=target_file,
+        true_values=true_values,
+        steps=steps,
+        save_every=save_every,
+        noise=noise,
+        seed=seed,
+        particles=particles,
+        description=description,
     )

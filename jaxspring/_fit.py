@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -69,7 +69,9 @@ class FitSettings:
 
     def validate(self):
         if self.optimizer not in OPTIMIZERS:
-            raise InputError("optimizer", f"unknown optimizer {self.optimizer!r}", f"use one of {', '.join(OPTIMIZERS)}")
+            raise InputError(
+                "optimizer", f"unknown optimizer {self.optimizer!r}", f"use one of {', '.join(OPTIMIZERS)}"
+            )
         if self.strategy not in STRATEGIES:
             raise InputError("strategy", f"unknown strategy {self.strategy!r}", f"use one of {', '.join(STRATEGIES)}")
         for name in ("iterations", "segment_frames", "long_horizon_steps"):
@@ -102,7 +104,8 @@ def plan_stages(observations: Observations, settings: FitSettings, scene: Scene 
     if strategy == "shooting":
         if not observations.full:
             raise InputError(
-                "strategy", "multiple shooting needs full recorded states of every particle",
+                "strategy",
+                "multiple shooting needs full recorded states of every particle",
                 "use curriculum, or observe all particles",
             )
         segment = min(settings.segment_frames, total)
@@ -130,15 +133,20 @@ def _check_names(scene: Scene, names, init: dict | None):
             raise InputError("params", f"{name!r} cannot be fitted", f"fit some of {', '.join(FITTABLE)}")
         if name not in present:
             raise InputError(
-                "params", f"the scene has no parameter {name!r} (its terms are {', '.join(scene.model.terms)})",
+                "params",
+                f"the scene has no parameter {name!r} (its terms are {', '.join(scene.model.terms)})",
                 f"fit some of {', '.join(n for n in present if n in FITTABLE)}",
             )
     for name, value in (init or {}).items():
         if name not in names:
-            raise InputError("init", f"{name!r} is given a start value but is not fitted", "add it to the fitted params")
+            raise InputError(
+                "init", f"{name!r} is given a start value but is not fitted", "add it to the fitted params"
+            )
         value = np.asarray(value, dtype=float)
         if not np.all(np.isfinite(value)) or np.any(value <= 0):
-            raise InputError(f"init.{name}", f"must be > 0 (fitted in log space), got {value}", "give a positive start value")
+            raise InputError(
+                f"init.{name}", f"must be > 0 (fitted in log space), got {value}", "give a positive start value"
+            )
     return names
 
 
@@ -165,7 +173,9 @@ def _loss_function(scene: Scene, observations: Observations, names, stage: Stage
     def loss(theta, data):
         params = params_of(theta)
         count = (data["x"].shape[0] - 1) // segment
-        starts = State(x=data["states_x"][0 : count * segment : segment], v=data["states_v"][0 : count * segment : segment])
+        starts = State(
+            x=data["states_x"][0 : count * segment : segment], v=data["states_v"][0 : count * segment : segment]
+        )
         target = data["x"][1 : count * segment + 1].reshape((count, segment) + data["x"].shape[1:])
         run = lambda s: rollout(model, params, s, steps=segment * every, save_every=every).x[1:]  # noqa: E731
         return jnp.mean((jax.vmap(run)(starts)[:, :, particles] - target) ** 2)
@@ -226,11 +236,11 @@ class FitProgress:
     stage: int
     iteration: int
     theta: dict
-    optimizer_leaves: Optional[list]
+    optimizer_leaves: list | None
     loss: list
     values: dict
     stage_of_iteration: list
-    last_step: Optional[np.ndarray] = None
+    last_step: np.ndarray | None = None
     done: bool = False
     wall_s: float = 0.0
 
@@ -281,8 +291,8 @@ class FitResult:
     stage_of_iteration: np.ndarray
     iterations: int
     wall_s: float
-    identifiability: Optional[Identifiability]
-    truth: Optional[dict] = None
+    identifiability: Identifiability | None
+    truth: dict | None = None
 
     @property
     def final_loss(self) -> float:
@@ -355,8 +365,8 @@ def fit_batch(
     params=("ks", "kd"),
     inits: list[dict] | None = None,
     settings: FitSettings | None = None,
-    progress: Optional[FitProgress] = None,
-    on_iteration: Optional[Callable[[FitProgress, list[Stage]], None]] = None,
+    progress: FitProgress | None = None,
+    on_iteration: Callable[[FitProgress, list[Stage]], None] | None = None,
     identify: bool = True,
     **kwargs,
 ) -> list[FitResult]:
@@ -377,14 +387,20 @@ def fit_batch(
         if len(inits) == 1:
             inits = inits * len(observations)
         else:
-            raise InputError("observations", f"{len(observations)} targets for {len(inits)} starts", "give one target or one per start")
+            raise InputError(
+                "observations",
+                f"{len(observations)} targets for {len(inits)} starts",
+                "give one target or one per start",
+            )
     names = tuple(params)
     for init in inits:
         _check_names(scene, names, init)
     members = len(inits)
     shapes = [o.x.shape for o in observations]
     if len(set(shapes)) != 1:
-        raise InputError("observations", f"targets differ in shape {shapes}", "give targets of equal length and particles")
+        raise InputError(
+            "observations", f"targets differ in shape {shapes}", "give targets of equal length and particles"
+        )
     reference = observations[0]
     batched_data = len(observations) > 1
     if batched_data:
@@ -411,7 +427,9 @@ def fit_batch(
             values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
             theta, opt_state, value = step(progress.theta, opt_state, data)
             progress.last_step = np.max(
-                np.stack([np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]),
+                np.stack(
+                    [np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]
+                ),
                 axis=0,
             )
             progress.theta = theta
@@ -467,15 +485,21 @@ def _results(scene, observations, names, start_values, settings, stages, progres
     for member, start in enumerate(start_values):
         obs = observations[member if batched_data else 0]
         final = {n: np.asarray(jnp.exp(progress.theta[n][member])) for n in names}
-        history = np.array([np.asarray(l)[member] for l in progress.loss] + [final_loss[member]])
+        history = np.array([np.asarray(loss)[member] for loss in progress.loss] + [final_loss[member]])
         value_history = {n: np.array([v[member] for v in progress.values[n]] + [final[n]]) for n in names}
         ident = identifiability(scene, obs, names, final) if identify else None
         results.append(
             FitResult(
-                names=names, initial={n: np.asarray(start[n]) for n in names}, final=final,
-                loss_history=history, value_history=value_history, stages=tuple(stages),
+                names=names,
+                initial={n: np.asarray(start[n]) for n in names},
+                final=final,
+                loss_history=history,
+                value_history=value_history,
+                stages=tuple(stages),
                 stage_of_iteration=np.asarray(progress.stage_of_iteration, dtype=int),
-                iterations=len(progress.loss), wall_s=progress.wall_s, identifiability=ident,
+                iterations=len(progress.loss),
+                wall_s=progress.wall_s,
+                identifiability=ident,
                 truth={n: obs.truth[n] for n in names if n in obs.truth} if obs.truth else None,
             )
         )

@@ -29,8 +29,11 @@ def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, re
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(
-            format=FIT_FORMAT, format_version=FIT_FORMAT_VERSION, jaxspring_version=__version__,
-            config=json.dumps(config, sort_keys=True), done=bool(progress.done),
+            format=FIT_FORMAT,
+            format_version=FIT_FORMAT_VERSION,
+            jaxspring_version=__version__,
+            config=json.dumps(config, sort_keys=True),
+            done=bool(progress.done),
         )
         group = f.create_group("fit")
         final = result.final if result is not None else {n: np.exp(np.asarray(progress.theta[n])[0]) for n in names}
@@ -59,7 +62,9 @@ def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, re
                 group.create_group("true").attrs.update({n: np.asarray(v) for n, v in result.truth.items()})
             ident = result.identifiability
             if ident is not None:
-                group.create_group("standard_error").attrs.update({n: np.asarray(v) for n, v in ident.standard_error.items()})
+                group.create_group("standard_error").attrs.update(
+                    {n: np.asarray(v) for n, v in ident.standard_error.items()}
+                )
                 corr = group.create_dataset("correlation", data=ident.correlation)
                 corr.attrs["names"] = list(ident.names)
                 group.attrs["warnings"] = json.dumps(list(ident.warnings))
@@ -81,7 +86,8 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
         if saved != json.loads(json.dumps(config, sort_keys=True)):
             changed = sorted(k for k in set(saved) | set(config) if saved.get(k) != config.get(k))
             raise InputError(
-                "--resume", f"{path} was written by a different fit (differs in {', '.join(changed)})",
+                "--resume",
+                f"{path} was written by a different fit (differs in {', '.join(changed)})",
                 "repeat the original command, or drop --resume to start over",
             )
         group = f["fit"]

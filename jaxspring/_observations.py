@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
 
 import jax.numpy as jnp
 import numpy as np
@@ -36,9 +35,9 @@ class Observations:
     particles: np.ndarray
     save_every: int
     initial_state: State
-    states: Optional[Trajectory] = None
+    states: Trajectory | None = None
     noise_std: float = 0.0
-    truth: Optional[dict] = None
+    truth: dict | None = None
 
     @property
     def frame_count(self) -> int:

@@ -39,7 +39,9 @@ def test_experiment_recovers_parameters_without_noise(experiments, name):
     for n in experiment.params:  # the start is a factor >= 2 away from the truth
         ratio = experiment.init[n] / truth[n]
         assert ratio >= 2 or ratio <= 0.5
-    result = js.fit(experiment.scene, experiment.observations(), experiment.params, experiment.init, experiment.settings)
+    result = js.fit(
+        experiment.scene, experiment.observations(), experiment.params, experiment.init, experiment.settings
+    )
     assert set(result.relative_errors()) == set(experiment.params)
     for n, error in result.relative_errors().items():
         assert error < 0.01, (n, error)
@@ -49,7 +51,9 @@ def test_experiment_recovers_parameters_without_noise(experiments, name):
 def test_experiment_with_one_percent_noise(experiments, name):
     experiment = experiments[name].replace(noise=0.01)
     truth = experiment.true_values
-    result = js.fit(experiment.scene, experiment.observations(), experiment.params, experiment.init, experiment.settings)
+    result = js.fit(
+        experiment.scene, experiment.observations(), experiment.params, experiment.init, experiment.settings
+    )
     report = result.identifiability
     for n, error in result.relative_errors().items():
         se = float(report.standard_error[n])
@@ -62,8 +66,16 @@ def test_experiment_with_one_percent_noise(experiments, name):
 
 def test_gauss_newton_standard_error_matches_hand_calculation():
     """One particle on a spring, no gravity, only ks fitted: check s^2 (J^T J)^-1 against finite differences."""
-    model = js.make_model([[0, 1]], [1.0, 1.0], positions=[[0, 0, 0], [1.5, 0, 0]], rest_length=[1.0], pinned=[0], gravity=False)
-    scene = js.Scene("spring", model, js.Params(ks=20.0, kd=0.3), js.State(*map(np.asarray, ([[0, 0, 0], [1.5, 0, 0]], np.zeros((2, 3))))), np.zeros((0, 3)))
+    model = js.make_model(
+        [[0, 1]], [1.0, 1.0], positions=[[0, 0, 0], [1.5, 0, 0]], rest_length=[1.0], pinned=[0], gravity=False
+    )
+    scene = js.Scene(
+        "spring",
+        model,
+        js.Params(ks=20.0, kd=0.3),
+        js.State(*map(np.asarray, ([[0, 0, 0], [1.5, 0, 0]], np.zeros((2, 3))))),
+        np.zeros((0, 3)),
+    )
     scene = js.Scene("spring", model, scene.params, js.State(x=scene.state.x * 1.0, v=scene.state.v * 1.0), scene.faces)
     obs = js.synthetic_observations(scene, {"ks": 20.0}, steps=400, save_every=20, noise_relative=0.02, seed=3)
     report = js.identifiability(scene, obs, ["ks"], {"ks": 20.0})
@@ -83,7 +95,9 @@ def test_gauss_newton_standard_error_matches_hand_calculation():
 def test_warns_when_a_parameter_does_not_affect_the_data():
     # drag only on the pinned particle: cd changes nothing that moves
     doc = {
-        "dt": 0.001, "steps": 200, "save_every": 20,
+        "dt": 0.001,
+        "steps": 200,
+        "save_every": 20,
         "physics": {"ks": 50.0, "kd": 0.5, "cd": 0.1},
         "particles": {"x": [[0, 0, 0], [1, 0, 0], [2, 0, 0]], "pinned": [0], "drag": [True, False, False]},
         "springs": {"pairs": [[0, 1], [1, 2]]},
@@ -98,14 +112,18 @@ def test_warns_when_a_parameter_does_not_affect_the_data():
 def test_confounded_and_poorly_determined_parameters_are_reported():
     # 0.06 s of a falling chain with 1% noise: the springs barely stretch, ks and kd trade off
     experiment = js.load_experiment(ROOT / "fitting" / "chain.toml")
-    obs = js.synthetic_observations(experiment.scene, experiment.true_values, steps=60, save_every=6, noise_relative=0.01)
+    obs = js.synthetic_observations(
+        experiment.scene, experiment.true_values, steps=60, save_every=6, noise_relative=0.01
+    )
     report = js.identifiability(experiment.scene, obs, ["ks", "kd", "cd"], experiment.true_values)
     assert report.names == ("cd", "kd", "ks")
     assert abs(report.correlation[1, 2]) > 0.95
     assert any(w.startswith("kd and ks are confounded") for w in report.warnings), report.warnings
     assert any(w.startswith("ks is poorly determined") for w in report.warnings), report.warnings
     # a longer window separates them again
-    long = js.synthetic_observations(experiment.scene, experiment.true_values, steps=1000, save_every=10, noise_relative=0.01)
+    long = js.synthetic_observations(
+        experiment.scene, experiment.true_values, steps=1000, save_every=10, noise_relative=0.01
+    )
     report = js.identifiability(experiment.scene, long, ["ks", "kd", "cd"], experiment.true_values)
     assert not any("ks" in w for w in report.warnings), report.warnings
 
@@ -180,8 +198,20 @@ def custom_recording(tmp_path):
 
 def test_cli_fits_any_trajectory_file(tmp_path, custom_recording, capsys):
     out = tmp_path / "tripod.fit.h5"
-    code = main(["fit", "--target", str(custom_recording), "--params", "ks,kd,cd", "--init", "ks=400,kd=2,cd=0.06",
-                 "--out", str(out), "--quiet"])
+    code = main(
+        [
+            "fit",
+            "--target",
+            str(custom_recording),
+            "--params",
+            "ks,kd,cd",
+            "--init",
+            "ks=400,kd=2,cd=0.06",
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     text = capsys.readouterr().out
     assert code == 0, text
     assert "rel. error" in text and "std. error" in text
@@ -217,7 +247,17 @@ def test_cli_fit_bad_input(tmp_path, custom_recording, capsys, extra, words):
 
 def test_cli_fit_rejects_mismatched_and_nan_targets(tmp_path, custom_recording, capsys):
     # a chain experiment against a 4-particle recording
-    code = main(["fit", str(ROOT / "fitting" / "chain.toml"), "--target", str(custom_recording), "--out", str(tmp_path / "x.h5"), "--quiet"])
+    code = main(
+        [
+            "fit",
+            str(ROOT / "fitting" / "chain.toml"),
+            "--target",
+            str(custom_recording),
+            "--out",
+            str(tmp_path / "x.h5"),
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "4 particles but the scene has 20" in err and len(err.strip().splitlines()) == 1
     nan_file = tmp_path / "nan.h5"
@@ -226,31 +266,59 @@ def test_cli_fit_rejects_mismatched_and_nan_targets(tmp_path, custom_recording, 
         x = f["trajectory/x"][()]
         x[3, 3, 1] = np.nan
         f["trajectory/x"][...] = x
-    code = main(["fit", "--target", str(nan_file), "--params", "ks", "--init", "ks=100", "--out", str(tmp_path / "y.h5"), "--quiet"])
+    code = main(
+        [
+            "fit",
+            "--target",
+            str(nan_file),
+            "--params",
+            "ks",
+            "--init",
+            "ks=100",
+            "--out",
+            str(tmp_path / "y.h5"),
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "NaN" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "y.h5").exists()
 
 
 def _fit_command(experiment, out, *extra):
-    return [sys.executable, "-m", "jaxspring", "fit", str(experiment), "--out", str(out), "--quiet",
-            "--checkpoint-every", "1", *extra]
+    return [
+        sys.executable,
+        "-m",
+        "jaxspring",
+        "fit",
+        str(experiment),
+        "--out",
+        str(out),
+        "--quiet",
+        "--checkpoint-every",
+        "1",
+        *extra,
+    ]
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_interrupted_fit_resumes_to_the_same_result(tmp_path, sig):
     experiment = tmp_path / "chain_short.toml"
     experiment.write_text(
-        (ROOT / "fitting" / "chain.toml").read_text()
+        (ROOT / "fitting" / "chain.toml")
+        .read_text()
         .replace('scene = "../scenes/chain.toml"', 'scene = "chain"')
-        .replace("steps = 1000", "steps = 300").replace("save_every = 10", "save_every = 3")
+        .replace("steps = 1000", "steps = 300")
+        .replace("save_every = 10", "save_every = 3")
         .replace("noise = 0.0", "noise = 0.01")
     )
     whole = tmp_path / "whole.fit.h5"
     subprocess.run(_fit_command(experiment, whole), check=True, capture_output=True, timeout=600)
 
     parts = tmp_path / "parts.fit.h5"
-    process = subprocess.Popen(_fit_command(experiment, parts), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        _fit_command(experiment, parts), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     deadline = time.time() + 300
     iterations = 0
     while time.time() < deadline and process.poll() is None:
