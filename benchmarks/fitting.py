@@ -1,8 +1,9 @@
 """Fitting benchmark: every fitting/ experiment (with and without noise, float32 and float64),
 optimizers (L-BFGS vs Adam) and long-horizon strategies (direct, curriculum, shooting).
 
-Run from the repository root:  python benchmarks/fitting.py [--quick] [--out benchmarks/results]
-Writes fitting.csv and fitting.md (a markdown table) into the output folder.
+Run from the repository root:
+    python benchmarks/fitting.py [--part experiments|comparisons|all] [--out benchmarks/results]
+Writes fitting_<part>.csv and fitting_<part>.md (a markdown table) into the output folder.
 Each configuration runs in a fresh process so float32 and float64 do not mix.
 """
 
@@ -125,7 +126,7 @@ def main():
         "warnings",
         "error",
     ]
-    with open(folder / "fitting.csv", "w", newline="") as handle:
+    with open(folder / f"fitting_{args.part}.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
         for row in rows:
@@ -148,7 +149,7 @@ def main():
             f"| {Path(row['experiment']).stem} | {row['noise']:.0%} | {row['dtype']} | {label} | {row['stages']} | "
             f"{row['iterations']} | {row['wall_s']:.1f} | {worst:.1e} |"
         )
-    (folder / "fitting.md").write_text("\n".join(lines) + "\n")
+    (folder / f"fitting_{args.part}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

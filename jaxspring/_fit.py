@@ -49,8 +49,8 @@ class FitSettings:
             curriculum.
         segment_frames: frames per multiple-shooting segment.
         long_horizon_steps: targets longer than this count as long.
-        tolerance: a stage stops when the loss improves by less than this fraction over 5 iterations,
-            or falls below `tolerance**2` times its first value (converged to round-off).
+        tolerance: a stage stops when the loss falls below `tolerance**2` times its first value
+            (converged to round-off) or, with L-BFGS, improves by less than this fraction over 5 iterations.
         step_tolerance: the last stage stops when no log-parameter moved by more than this in an iteration.
         warmup_step_tolerance: the same for the earlier (curriculum or shooting) stages, which only
             need to bring the parameters close.
@@ -471,7 +471,7 @@ def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool) 
     first, now = np.asarray(in_stage[0]), np.asarray(in_stage[-1])
     if np.all(now <= settings.tolerance**2 * first):
         return True
-    if len(in_stage) < 6:
+    if len(in_stage) < 6 or settings.optimizer != "lbfgs":  # Adam's loss is not monotone
         return False
     before = np.asarray(in_stage[-6])
     return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))
