@@ -51,18 +51,19 @@ def run(config):
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/results")
-    parser.add_argument("--quick", action="store_true", help="float64 only, no optimizer/strategy comparisons")
+    parser.add_argument("--part", choices=["experiments", "comparisons", "all"], default="all")
     args = parser.parse_args()
     rows = []
     experiments = ["mass_spring", "chain", "jelly", "cloth"]
-    dtypes = ["float64"] if args.quick else ["float64", "float32"]
-    configs = [
-        dict(kind="experiment", experiment=f"fitting/{name}.toml", noise=noise, dtype=dtype)
-        for dtype in dtypes
-        for name in experiments
-        for noise in (0.0, 0.01)
-    ]
-    if not args.quick:
+    configs = []
+    if args.part in ("experiments", "all"):
+        configs += [
+            dict(kind="experiment", experiment=f"fitting/{name}.toml", noise=noise, dtype=dtype)
+            for dtype in ("float64", "float32")
+            for name in experiments
+            for noise in (0.0, 0.01)
+        ]
+    if args.part in ("comparisons", "all"):
         configs += [
             dict(
                 kind="optimizer",

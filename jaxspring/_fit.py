@@ -456,7 +456,7 @@ def fit_batch(
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)
-    return _results(scene, observations, names, start_values, settings, stages, progress, batched_data, identify)
+    return _results(scene, observations, names, start_values, settings, stages, progress, data, identify)
 
 
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool) -> bool:
@@ -477,15 +477,10 @@ def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool) 
     return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))
 
 
-def _results(scene, observations, names, start_values, settings, stages, progress, batched_data, identify):
-    final_stage = stages[-1]
-    loss = _loss_function(scene, observations[0], names, final_stage)
+def _results(scene, observations, names, start_values, settings, stages, progress, data, identify):
+    batched_data = len(observations) > 1
+    loss = _loss_function(scene, observations[0], names, stages[-1])
     _, _, value = _step_function(loss, settings, batched_data)
-    data = (
-        jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[_target_data(o) for o in observations])
-        if batched_data
-        else _target_data(observations[0])
-    )
     final_loss = np.asarray(value(progress.theta, data))
     results = []
     polish_stage = Stage("gauss_newton", observations[0].frame_count - 1)

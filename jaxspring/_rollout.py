@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -53,24 +52,6 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
     """
     end, _, _ = _simulate(model, params, state, 1, int(steps))
     return end
-
-
-def rollout_chunks(
-    model: Model, params: Params, state: State, steps: int, save_every: int, chunk_steps: int
-) -> Iterator[tuple[State, jax.Array, jax.Array]]:
-    """Run a rollout in chunks, yielding (last state, x frames, v frames) per chunk.
-
-    Used for progress bars and blow-up checks on long runs; frames exclude the
-    initial state. Every chunk except possibly the last reuses one compiled function.
-    """
-    frames = _frame_count(steps, save_every)
-    per_chunk = max(1, chunk_steps // save_every)
-    done = 0
-    while done < frames:
-        n = min(per_chunk, frames - done)
-        state, x, v = _simulate(model, params, state, n, save_every)
-        done += n
-        yield state, x, v
 
 
 def _frame_count(steps, save_every) -> int:
