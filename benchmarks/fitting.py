@@ -48,6 +48,29 @@ def run(config):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def write_table(rows, path):
+    """A markdown table: one row per configuration, the relative error of each parameter."""
+    lines = [
+        "| experiment | noise | dtype | optimizer / strategy | stages | iterations | wall [s] | relative errors |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        label = f"{row.get('optimizer') or 'lbfgs'} / {row.get('strategy') or 'auto'}"
+        if row.get("steps"):
+            label += f", {row['steps']} steps"
+        name = Path(row["experiment"]).stem
+        if row.get("error"):
+            lines.append(f"| {name} | {row['noise']} | {row['dtype']} | {label} | failed: {row['error']} | | | |")
+            continue
+        errors = ", ".join(f"{k} {v:.1e}" for k, v in row["errors"].items())
+        lines.append(
+            f"| {name} | {float(row['noise']):.0%} | {row['dtype']} | {label} | {row['stages']} | "
+            f"{row['iterations']} | {float(row['wall_s']):.1f} | {errors} |"
+        )
+    path.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/results")
@@ -132,26 +155,7 @@ def main():
         writer.writeheader()
         for row in rows:
             writer.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in row.items()})
-    lines = [
-        "| experiment | noise | dtype | optimizer / strategy | stages | iterations | wall [s] | max rel. error |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        label = f"{row.get('optimizer', 'lbfgs')} / {row.get('strategy', 'auto')}"
-        if row.get("steps"):
-            label += f", {row['steps']} steps"
-        if "error" in row:
-            lines.append(
-                f"| {Path(row['experiment']).stem} | {row['noise']} | {row['dtype']} | {label} | failed: {row['error']} | | | |"
-            )
-            continue
-        worst = max(row["errors"].values())
-        lines.append(
-            f"| {Path(row['experiment']).stem} | {row['noise']:.0%} | {row['dtype']} | {label} | {row['stages']} | "
-            f"{row['iterations']} | {row['wall_s']:.1f} | {worst:.1e} |"
-        )
-    (folder / f"fitting_{args.part}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_table(rows, folder / f"fitting_{args.part}.md")
 
 
 if __name__ == "__main__":
