@@ -159,19 +159,16 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
         scene_params = check_params(model, Params(**{k: jnp.asarray(v, dtype=float) for k, v in params.items()}))
     except InputError as exc:
         raise exc.within(str(path)) from None
+    trajectory = Trajectory(x=jnp.asarray(x), v=jnp.asarray(v), t=jnp.asarray(t))
+    stride = trajectory.stride(dt)
     scene = Scene(
         name=name,
         model=model,
         params=scene_params,
         state=State(x=jnp.asarray(x[0], dtype=float), v=jnp.asarray(v[0], dtype=float)),
         faces=faces,
-        steps=int(x.shape[0] - 1) * _stride(t, dt),
-        save_every=_stride(t, dt),
+        steps=int(x.shape[0] - 1) * stride,
+        save_every=stride,
         lattice_shape=lattice,
     )
-    trajectory = Trajectory(x=jnp.asarray(x), v=jnp.asarray(v), t=jnp.asarray(t))
     return scene, trajectory
-
-
-def _stride(t, dt) -> int:
-    return max(1, int(round((t[1] - t[0]) / dt))) if t.shape[0] > 1 else 1

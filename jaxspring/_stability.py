@@ -192,8 +192,7 @@ def find_blowup(model: Model, params: Params, trajectory: Trajectory) -> BlowUp 
     bad = first_bad_frame(model, params, trajectory.x, trajectory.v, threshold)
     if bad is None:
         return None
-    t = np.asarray(trajectory.t)
-    save_every = max(1, int(round((t[1] - t[0]) / model.dt))) if t.shape[0] > 1 else 1
+    save_every = trajectory.stride(model.dt)
     stability = estimate_stability(model, params, first)
     if bad == 0:
         return BlowUp(0, 0.0, "non-finite initial state", stability)

@@ -6,6 +6,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 @jax.tree_util.register_dataclass
@@ -47,6 +48,11 @@ class Trajectory:
     @property
     def frame_count(self) -> int:
         return int(self.x.shape[-3])
+
+    def stride(self, dt: float) -> int:
+        """Time steps between saved frames, for a rollout with time step `dt` [s]."""
+        t = np.asarray(self.t)
+        return max(1, int(round(float(t[1] - t[0]) / dt))) if t.shape[0] > 1 else 1
 
     def frame(self, index: int) -> State:
         """The state at one saved frame (negative indices count from the end)."""
