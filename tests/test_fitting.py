@@ -332,8 +332,8 @@ def test_interrupted_fit_resumes_to_the_same_result(tmp_path, sig):
         (ROOT / "fitting" / "chain.toml")
         .read_text()
         .replace('scene = "../scenes/chain.toml"', 'scene = "chain"')
-        .replace("steps = 1000", "steps = 300")
-        .replace("save_every = 10", "save_every = 3")
+        .replace("steps = 1000", "steps = 600")
+        .replace("save_every = 10", "save_every = 6")
         .replace("noise = 0.0", "noise = 0.01")
     )
     whole = tmp_path / "whole.fit.h5"
