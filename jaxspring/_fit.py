@@ -597,7 +597,8 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
     covariance of log p is s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - P); a parameter's
     standard error is its value times its log standard error. Warns when the data do
     not depend on a parameter, when it is poorly determined (relative standard error
-    above 50%), and when two parameters are confounded (|correlation| > 0.95).
+    above 50%), when two parameters are confounded (|correlation| > 0.95), and when the
+    loss one standard error away disagrees with the quadratic model (a rough loss).
 
     Example:
         >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
@@ -639,6 +640,7 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
     for i, label in enumerate(labels):
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
+    warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):
             if abs(correlation[i, j]) > 0.95 and not (dead[i] or dead[j]):
@@ -647,6 +649,38 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
                     "the data constrain a combination of them, not each"
                 )
     return Identifiability(standard_error, relative, correlation, tuple(labels), math.sqrt(sigma2), tuple(warnings))
+
+
+def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:
+    """Check the Gauss-Newton quadratic model one standard error either side of the point.
+
+    Moving log p_i by d = +-s_i changes the sum of squares, to second order, by
+    2 (J^T r)_i d + (d |J_i|)^2. When the actual change misses that by more than half the
+    curvature term, the loss is not smooth there (contact switching on at discrete steps
+    does this): the standard errors are then not to be trusted and the fit may sit in a
+    local dip.
+    """
+    warnings = []
+    cost = float(r @ r)
+    slope = jac.T @ r
+    for i, label in enumerate(labels):
+        if not (1e-6 < log_se[i] < 1.0):  # determined to round-off, or already flagged as poorly determined
+            continue
+        curvature = float((log_se[i] * np.linalg.norm(jac[:, i])) ** 2)
+        for sign in (1.0, -1.0):
+            step = sign * log_se[i]
+            moved = np.array(flat, dtype=float)
+            moved[i] += step
+            change = float(np.sum(np.asarray(residuals(jnp.asarray(moved))) ** 2)) - cost
+            predicted = 2.0 * float(slope[i]) * step + curvature
+            if abs(change - predicted) > 0.5 * curvature:
+                warnings.append(
+                    f"{label}: the loss is not smooth near the fit (one standard error away it changes by "
+                    f"{change / curvature:.2g} where the quadratic model predicts {predicted / curvature:.2g}, "
+                    "in units of the curvature term); its standard error is unreliable and the fit may sit in a local dip"
+                )
+                break
+    return warnings
 
 
 def _labels(theta: dict) -> list[str]:

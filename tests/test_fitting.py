@@ -53,7 +53,8 @@ NOISY = [
         marks=pytest.mark.xfail(
             strict=True,
             reason="jelly + 1% noise: the contact makes the loss rough at small scales and the fit stops "
-            "with kd ~65% off (ks within 0.3%); an open problem, see README",
+            "with kd ~65% off (ks within 0.3%); the report flags the roughness (test_rough_loss_is_flagged); "
+            "an open problem, see README",
         ),
     )
     if name == "jelly"
@@ -139,6 +140,16 @@ def test_confounded_and_poorly_determined_parameters_are_reported():
     )
     report = js.identifiability(experiment.scene, long, ["ks", "kd", "cd"], experiment.true_values)
     assert not any("ks" in w for w in report.warnings), report.warnings
+
+
+def test_rough_loss_is_flagged(experiments):
+    """Contact makes the noisy jelly's loss rough: the report must say its standard errors are unreliable."""
+    jelly = experiments["jelly"].replace(noise=0.01)
+    report = js.identifiability(jelly.scene, jelly.observations(), jelly.params, jelly.true_values)
+    assert any(w.startswith("kd: the loss is not smooth") for w in report.warnings), report.warnings
+    chain = experiments["chain"].replace(noise=0.01)  # smooth: no such warning
+    report = js.identifiability(chain.scene, chain.observations(), chain.params, chain.true_values)
+    assert not any("not smooth" in w for w in report.warnings), report.warnings
 
 
 def test_multi_start_and_multi_target_batches():
