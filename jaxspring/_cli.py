@@ -227,7 +227,7 @@ def _fit_problem(args):
         experiment = experiment.replace(params=tuple(p.strip() for p in args.params.split(",") if p.strip()))
     if not experiment.params:
         raise InputError("--params", "no parameters named", "give e.g. --params ks,kd,cd")
-    init = dict(experiment.init)
+    init = {k: v for k, v in experiment.init.items() if k in experiment.params}  # --params may narrow the fit
     init.update(_parse_values(args.init))
     changes = {k: getattr(args, k) for k in ("optimizer", "strategy", "iterations") if getattr(args, k) is not None}
     settings = dataclasses.replace(experiment.settings, **changes).validate()
