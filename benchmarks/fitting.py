@@ -96,35 +96,12 @@ def main():
                 optimizer="adam",
                 iterations=400,
             ),
-            dict(kind="strategy", experiment="fitting/jelly.toml", noise=0.0, dtype="float64", strategy="direct"),
-            dict(kind="strategy", experiment="fitting/jelly.toml", noise=0.0, dtype="float64", strategy="curriculum"),
-            dict(
-                kind="strategy",
-                experiment="fitting/chain.toml",
-                noise=0.0,
-                dtype="float64",
-                strategy="direct",
-                steps=5000,
-                save_every=50,
-            ),
-            dict(
-                kind="strategy",
-                experiment="fitting/chain.toml",
-                noise=0.0,
-                dtype="float64",
-                strategy="curriculum",
-                steps=5000,
-                save_every=50,
-            ),
-            dict(
-                kind="strategy",
-                experiment="fitting/chain.toml",
-                noise=0.0,
-                dtype="float64",
-                strategy="shooting",
-                steps=5000,
-                save_every=50,
-            ),
+        ]
+        clean = dict(kind="strategy", noise=0.0, dtype="float64")
+        configs += [dict(clean, experiment="fitting/jelly.toml", strategy=s) for s in ("direct", "curriculum")]
+        configs += [
+            dict(clean, experiment="fitting/chain.toml", strategy=s, steps=5000, save_every=50)
+            for s in ("direct", "curriculum", "shooting")
         ]
     for config in configs:
         t = time.perf_counter()
