@@ -183,18 +183,23 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     if cd is not None and not np.any(topology["drag"]):
         raise InputError("physics.cd", "set but no particle has drag", "remove cd, or set drag = true")
     gravity_on = any(g != 0.0 for g in gravity)
-    model = make_model(
-        springs,
-        topology["mass"],
-        rest_length=topology["rest_length"],
-        positions=x,
-        pinned=topology["pinned"],
-        drag=topology["drag"],
-        gravity=gravity_on,
-        ground=ground_values is not None,
-        integrator=integrator,
-        dt=dt,
-    )
+    try:
+        model = make_model(
+            springs,
+            topology["mass"],
+            rest_length=topology["rest_length"],
+            positions=x,
+            pinned=topology["pinned"],
+            drag=topology["drag"],
+            gravity=gravity_on,
+            ground=ground_values is not None,
+            integrator=integrator,
+            dt=dt,
+        )
+    except InputError as exc:  # name the table the bad value came from
+        table = "lattice" if lattice is not None else "particles"
+        prefix = {"springs": "springs", "rest_length": "springs"}.get(exc.field, table)
+        raise exc.within("", "" if exc.field in ("dt", "integrator") else prefix) from None
     values = dict(ks=ks, kd=kd, cd=cd, gravity=gravity if gravity_on else None)
     values.update(ground_values or {})
     params = check_params(model, Params(**{k: _array(v) for k, v in values.items() if v is not None}))
@@ -288,11 +293,6 @@ def _explicit_topology(particles: _Table, springs_table: _Table | None, has_drag
                 "give one per spring",
             )
         springs_table.finish()
-    try:
-        check = make_model(springs, np.ones(count), positions=positions, pinned=pinned)
-        del check
-    except InputError as exc:
-        raise exc.within("", "springs" if exc.field == "springs" else "particles") from None
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if faces.size and (faces.min() < 0 or faces.max() >= count):
         raise InputError("particles.faces", f"particle index out of range 0..{count - 1}", "fix the triangle list")
