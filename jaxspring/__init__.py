@@ -11,13 +11,13 @@ __version__ = "0.1.0"
 from ._errors import BlowUpError, FileFormatError, InputError, JaxspringError
 from ._files import load_trajectory, save_trajectory
 from ._forces import TERMS, safe_norm
-from ._integrators import INTEGRATORS, semi_implicit_euler
+from ._integrators import INTEGRATORS, NewtonSettings, backward_euler, rk4, semi_implicit_euler, verlet
 from ._model import Model, check_params, make_model
 from ._params import Params
 from ._render import plot_fit, render
 from ._rollout import energy, final_state, rollout
 from ._scene import Scene, builtin_scenes, load_scene, scene_from_dict
-from ._stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup
+from ._stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup, stable_dt
 from ._state import State, Trajectory
 from ._topology import lattice_faces, lattice_positions, lattice_springs
 
@@ -41,6 +41,7 @@ __all__ = [
     "estimate_stability",
     "final_state",
     "find_blowup",
+    "stable_dt",
     "lattice_faces",
     "lattice_positions",
     "lattice_springs",
@@ -54,6 +55,10 @@ __all__ = [
     "save_trajectory",
     "scene_from_dict",
     "semi_implicit_euler",
+    "verlet",
+    "rk4",
+    "backward_euler",
+    "NewtonSettings",
 ]
 
 from ._experiment import Experiment, load_experiment, observations_from_file  # noqa: E402

@@ -11,6 +11,7 @@ import numpy as np
 from ._errors import InputError
 from ._forces import TERM_PARAMETERS, TERMS
 from ._integrators import INTEGRATORS
+from ._integrators import step as _integrate
 from ._params import NON_NEGATIVE, PARAMETER_INFO, Params
 from ._state import State
 
@@ -68,7 +69,7 @@ class Model:
 
     def step(self, params: Params, state: State) -> State:
         """Advance one time step dt with the model's integrator."""
-        return INTEGRATORS[self.integrator](self, params, state)
+        return _integrate(self, params, state)
 
     def replace(self, **changes) -> Model:
         return dataclasses.replace(self, **changes)

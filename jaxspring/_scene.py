@@ -65,6 +65,21 @@ class Scene:
             raise InputError("integrator", f"unknown integrator {name!r}", f"use one of {', '.join(INTEGRATORS)}")
         return dataclasses.replace(self, model=self.model.replace(integrator=name))
 
+    def with_dt(self, dt: float) -> Scene:
+        """A copy that steps with another dt [s]."""
+        dt = float(dt)
+        if not (math.isfinite(dt) and dt > 0):
+            raise InputError("dt", f"must be a finite number > 0, got {dt}", "give a positive time step")
+        return dataclasses.replace(self, model=self.model.replace(dt=dt))
+
+    def with_state(self, state: State) -> Scene:
+        """A copy that starts from another state (same particle count)."""
+        if state.x.shape != self.state.x.shape or state.v.shape != self.state.v.shape:
+            raise InputError(
+                "state", f"shape {state.x.shape} differs from the scene's {self.state.x.shape}", "give x, v of (N, 3)"
+            )
+        return dataclasses.replace(self, state=state)
+
 
 def builtin_scene_dir() -> Path:
     """Folder of the built-in scenes (installed copy, else the source checkout's scenes/)."""

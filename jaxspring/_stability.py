@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._forces import TERMS
+from ._integrators import INTEGRATORS
 from ._model import Model
 from ._params import Params
 from ._rollout import _simulate, energy
 from ._state import State, Trajectory
 
-ENERGY_GAIN_FACTOR = 10.0  # energy may not grow by more than this many energy scales
+ENERGY_GAIN_FACTOR = 0.5  # energy may not grow by more than this fraction of the energy scale
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,15 +27,23 @@ class StabilityEstimate:
     Attributes:
         omega_max: largest angular frequency of the linearised system [rad/s].
         damping_max: largest damping rate c of the linearised system [1/s].
-        dt_bound: largest stable dt of semi-implicit Euler [s]: solves
-            (omega dt)^2 + 2 c dt = 4, i.e. 2 / omega_max without damping.
+        dt_bound: largest stable dt of the scene's integrator [s] (inf: unconditionally stable).
         dt: the model's dt [s].
+        integrator: the scene's integrator.
+        bounds: largest stable dt of every integrator [s], name -> bound.
+
+    The bounds are those of the test equation x'' = -omega_max^2 x - damping_max x'
+    stepped by the integrators' own code: the largest dt at which the step's
+    amplification matrix has spectral radius <= 1 (semi-implicit Euler: the root of
+    (omega dt)^2 + 2 c dt = 4, i.e. 2 / omega_max without damping).
     """
 
     omega_max: float
     damping_max: float
     dt_bound: float
     dt: float
+    integrator: str = "semi_implicit_euler"
+    bounds: dict = dataclasses.field(default_factory=dict)
 
     @property
     def margin(self) -> float:
@@ -42,19 +51,32 @@ class StabilityEstimate:
         return self.dt_bound / self.dt
 
     def describe(self) -> str:
+        bound = "unconditionally stable" if math.isinf(self.dt_bound) else f"stable dt <= {self.dt_bound:.4g} s"
         return (
-            f"omega_max {self.omega_max:.4g} rad/s, stable dt <= {self.dt_bound:.4g} s "
-            f"(2/omega_max with damping), scene dt {self.dt:.4g} s, margin {self.margin:.3g}x"
+            f"omega_max {self.omega_max:.4g} rad/s, damping {self.damping_max:.4g} 1/s: {self.integrator} {bound}, "
+            f"scene dt {self.dt:.4g} s, margin {self.margin:.3g}x"
         )
+
+    def table(self) -> str:
+        """One line per integrator: order, stable dt, margin at the scene's dt."""
+        lines = [f"{'integrator':<20} {'order':>5} {'stable dt [s]':>14} {'margin':>9}"]
+        for name, bound in self.bounds.items():
+            text = "unconditional" if math.isinf(bound) else f"{bound:.4g}"
+            margin = "inf" if math.isinf(bound) else f"{bound / self.dt:.3g}x"
+            mark = "  <- scene" if name == self.integrator else ""
+            lines.append(f"{name:<20} {INTEGRATORS[name].order:>5} {text:>14} {margin:>9}{mark}")
+        return "\n".join(lines)
 
 
 def estimate_stability(model: Model, params: Params, state: State, iterations: int = 100) -> StabilityEstimate:
-    """Estimate omega_max and the stable dt of semi-implicit Euler by power iteration.
+    """Estimate omega_max, the damping rate and every integrator's stable dt.
 
     Linearises the force at `state` (springs, ground contact assumed for every
     particle when the scene has a ground, since a falling body will touch it)
     and runs power iteration on M^-1/2 K M^-1/2 and M^-1/2 C M^-1/2, where
-    K = -dF/dx and C = -dF/dv, restricted to free particles.
+    K = -dF/dx and C = -dF/dv, restricted to free particles. The stable dt of each
+    integrator is then found on the test equation with those two rates
+    (`stable_dt`).
 
     Example:
         >>> js.estimate_stability(scene.model, scene.params, scene.state).dt_bound
@@ -65,12 +87,57 @@ def estimate_stability(model: Model, params: Params, state: State, iterations: i
         scale = 1.0 / np.asarray(model.mass)
         omega_sq += float(np.max(np.asarray(params.kg) * scale))
         damping += float(np.max(np.asarray(params.kgd) * scale))
-    omega_sq, damping = max(omega_sq, 0.0), max(damping, 0.0)
-    if omega_sq == 0.0:
-        bound = 2.0 / damping if damping > 0 else math.inf
-    else:
-        bound = (-damping + math.sqrt(damping**2 + 4.0 * omega_sq)) / omega_sq
-    return StabilityEstimate(math.sqrt(omega_sq), damping, bound, model.dt)
+    omega, damping = math.sqrt(max(omega_sq, 0.0)), max(damping, 0.0)
+    bounds = {name: stable_dt(name, omega, damping) for name in INTEGRATORS}
+    return StabilityEstimate(omega, damping, bounds[model.integrator], model.dt, model.integrator, bounds)
+
+
+@functools.lru_cache(maxsize=None)
+def _amplification(name):
+    """The step's 2 x 2 amplification matrix on x'' = -w^2 x - c x', as a function of (w, c, dt)."""
+    step = INTEGRATORS[name].step
+    one = jnp.ones((1, 1))
+
+    def advance(y, omega, damping, dt):
+        x, v = step(
+            lambda x, v: -(omega**2) * x - damping * v, one, jnp.ones((1, 1), bool), y[0] * one, y[1] * one, dt
+        )
+        return jnp.stack([x[0, 0], v[0, 0]])
+
+    return jax.jit(jax.jacfwd(advance))
+
+
+def stable_dt(integrator: str, omega: float, damping: float = 0.0) -> float:
+    """Largest dt at which `integrator` is stable on x'' = -omega^2 x - damping x' [s].
+
+    Bisection on the spectral radius of the integrator's own amplification matrix
+    (evaluated through its code); inf when it is stable at every dt tried (up to
+    1e6 / rate), as backward Euler is.
+
+    Example:
+        >>> js.stable_dt("semi_implicit_euler", omega=100.0)   # 2 / 100
+        0.02
+    """
+    rate = max(omega, damping)
+    if rate <= 0:
+        return math.inf
+    matrix = _amplification(integrator)
+    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    y0 = jnp.zeros(2, dtype)
+
+    def stable(dt):
+        a = np.asarray(matrix(y0, jnp.asarray(omega, dtype), jnp.asarray(damping, dtype), jnp.asarray(dt, dtype)))
+        return bool(np.all(np.isfinite(a))) and float(np.max(np.abs(np.linalg.eigvals(a)))) <= 1.0 + 1e-6
+
+    low, high = 0.0, 0.1 / rate
+    while stable(high):
+        low, high = high, 2.0 * high
+        if high > 1e6 / rate:
+            return math.inf
+    for _ in range(40):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if stable(middle) else (low, middle)
+    return low
 
 
 @functools.partial(jax.jit, static_argnames=("iterations",))
@@ -123,9 +190,13 @@ class BlowUp:
 
     def describe(self) -> str:
         s = self.stability
-        advice = (
-            f"reduce dt below {s.dt_bound:.3g} s (stable-dt estimate 2/omega_max, omega_max {s.omega_max:.4g} rad/s)"
-        )
+        if math.isinf(s.dt_bound) or s.margin >= 1:
+            advice = f"the linearised estimate ({s.describe()}) did not predict this; reduce dt or check the scene"
+        else:
+            advice = (
+                f"reduce dt below {s.dt_bound:.3g} s ({s.integrator}'s stable-dt estimate, "
+                f"omega_max {s.omega_max:.4g} rad/s), or use backward_euler"
+            )
         return f"simulation blew up at step {self.step} (t = {self.time:.6g} s): {self.reason}; {advice}"
 
 
