@@ -183,7 +183,5 @@ def step(model, params, state: State) -> State:
     """
     integrator = INTEGRATORS[model.integrator].step
     free = (~model.pinned)[:, None]
-    x, v = integrator(
-        lambda x, v: model.force(params, x, v), model.mass[:, None], free, state.x, state.v, model.dt
-    )
+    x, v = integrator(lambda x, v: model.force(params, x, v), model.mass[:, None], free, state.x, state.v, model.dt)
     return State(x=x, v=v)

@@ -92,16 +92,14 @@ def estimate_stability(model: Model, params: Params, state: State, iterations: i
     return StabilityEstimate(omega, damping, bounds[model.integrator], model.dt, model.integrator, bounds)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _amplification(name):
     """The step's 2 x 2 amplification matrix on x'' = -w^2 x - c x', as a function of (w, c, dt)."""
     step = INTEGRATORS[name].step
     one = jnp.ones((1, 1))
 
     def advance(y, omega, damping, dt):
-        x, v = step(
-            lambda x, v: -(omega**2) * x - damping * v, one, jnp.ones((1, 1), bool), y[0] * one, y[1] * one, dt
-        )
+        x, v = step(lambda x, v: -(omega**2) * x - damping * v, one, jnp.ones((1, 1), bool), y[0] * one, y[1] * one, dt)
         return jnp.stack([x[0, 0], v[0, 0]])
 
     return jax.jit(jax.jacfwd(advance))

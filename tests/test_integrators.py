@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring._stability import energy_threshold
 
 ORDERS = {"semi_implicit_euler": 1, "verlet": 2, "rk4": 4, "backward_euler": 1}
 # horizon [s] and dt sweep per scene: small enough to be in the asymptotic regime
 SWEEPS = {
     "mass_spring": (2.0, {1: [0.04, 0.02, 0.01, 0.005], 2: [0.04, 0.02, 0.01, 0.005], 4: [0.1, 0.05, 0.025, 0.0125]}),
-    "chain": (0.2, {1: [0.004, 0.002, 0.001, 0.0005], 2: [0.004, 0.002, 0.001, 0.0005], 4: [0.008, 0.004, 0.002, 0.001]}),
+    "chain": (
+        0.2,
+        {1: [0.004, 0.002, 0.001, 0.0005], 2: [0.004, 0.002, 0.001, 0.0005], 4: [0.008, 0.004, 0.002, 0.001]},
+    ),
 }
 
 
@@ -125,7 +127,9 @@ def test_stable_dt_test_equation():
     assert js.stable_dt("rk4", 100.0) == pytest.approx(2 * math.sqrt(2) / 100, rel=1e-6)
     assert math.isinf(js.stable_dt("backward_euler", 100.0, 50.0))
     # damped semi-implicit Euler: (w dt)^2 + 2 c dt = 4
-    assert js.stable_dt("semi_implicit_euler", 100.0, 20.0) == pytest.approx((-20 + math.sqrt(400 + 4e4)) / 1e4, rel=1e-6)
+    assert js.stable_dt("semi_implicit_euler", 100.0, 20.0) == pytest.approx(
+        (-20 + math.sqrt(400 + 4e4)) / 1e4, rel=1e-6
+    )
     # pure damping: explicit Euler on v' = -c v needs c dt <= 2
     assert js.stable_dt("semi_implicit_euler", 0.0, 100.0) == pytest.approx(0.02, rel=1e-5)
 
