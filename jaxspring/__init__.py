@@ -83,3 +83,11 @@ __all__ += [
     "observations_from_trajectory",
     "synthetic_observations",
 ]
+
+from ._accuracy import AccuracyRow  # noqa: E402
+from ._accuracy import plot as plot_accuracy  # noqa: E402
+from ._accuracy import read_csv as read_accuracy  # noqa: E402
+from ._accuracy import recommend as recommend_settings  # noqa: E402
+from ._accuracy import sweep as accuracy_sweep  # noqa: E402
+
+__all__ += ["AccuracyRow", "accuracy_sweep", "plot_accuracy", "read_accuracy", "recommend_settings"]

@@ -35,7 +35,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter, e.g. ks=600"
     )
     run.add_argument("--integrator", help="time integrator (default: the scene's)")
+    run.add_argument("--dt", type=float, help="time step [s] (default: the scene's)")
     _add_common(run)
+
+    check = sub.add_parser(
+        "check", help="estimate omega_max and every integrator's stable dt; exit 1 if the scene's would blow up"
+    )
+    check.add_argument("scene", help="scene TOML file, or a built-in name")
+    check.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter")
+    check.add_argument("--integrator", help="time integrator (default: the scene's)")
+    check.add_argument("--dt", type=float, help="time step [s] (default: the scene's)")
+    check.add_argument("--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)")
+
+    bench = sub.add_parser("bench", help="benchmarks: speed against error of every integrator")
+    bench.add_argument("kind", choices=["accuracy"], help="accuracy: dt sweep against float64 references")
+    bench.add_argument("--scenes", help="comma-separated scenes (default: the four seed scenes)")
+    bench.add_argument("--quick", action="store_true", help="short horizons, mass_spring and chain only (a smoke run)")
+    bench.add_argument("--repeats", type=int, default=3, help="timed runs per configuration; the median counts")
+    bench.add_argument("--out-dir", default="bench_results", help="folder for the CSV, table and plot")
+    bench.add_argument("--quiet", action="store_true", help="no progress lines")
 
     render = sub.add_parser("render", help="draw a trajectory file to a PNG frame or a GIF movie")
     render.add_argument("file", help="trajectory file written by `jaxspring run`")
@@ -77,11 +95,18 @@ def main(argv=None) -> int:
     from ._errors import JaxspringError
 
     try:
-        if getattr(args, "dtype", "float32") == "float64":
+        if getattr(args, "dtype", "float32") == "float64" or args.command == "bench":
             import jax
 
             jax.config.update("jax_enable_x64", True)
-        handler = {"run": _cmd_run, "render": _cmd_render, "demo": _cmd_demo, "fit": _cmd_fit}[args.command]
+        handler = {
+            "run": _cmd_run,
+            "check": _cmd_check,
+            "bench": _cmd_bench,
+            "render": _cmd_render,
+            "demo": _cmd_demo,
+            "fit": _cmd_fit,
+        }[args.command]
         return handler(args) or 0
     except JaxspringError as exc:
         print(f"jaxspring: error: {exc}", file=sys.stderr)
@@ -116,9 +141,13 @@ def _prepare_scene(args):
     scene = load_scene(args.scene)
     if args.integrator:
         scene = scene.with_integrator(args.integrator)
+    if getattr(args, "dt", None) is not None:
+        scene = scene.with_dt(args.dt)
     overrides = _parse_sets(args.set)
     if overrides:
         scene = scene.with_params(**overrides)
+    if args.command == "check":
+        return scene, None, None
     steps = scene.steps if args.steps is None else args.steps
     save_every = scene.save_every if args.save_every is None else args.save_every
     if save_every < 1:
@@ -146,17 +175,76 @@ def _simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
 
     stability = estimate_stability(scene.model, scene.params, scene.state)
     if stability.margin < 1:
-        print(
-            f"jaxspring: warning: {scene.name}: dt {scene.model.dt:g} s exceeds the stable-dt estimate "
-            f"{stability.dt_bound:.3g} s; expect a blow-up",
-            file=sys.stderr,
-            flush=True,
-        )
+        print(f"jaxspring: warning: {_instability_advice(scene, stability)}", file=sys.stderr, flush=True)
     result = run_scene(scene, steps, save_every, show_progress=not quiet, stability=stability)
     if result.blowup is not None:
         raise BlowUpError(f"{scene.name}: {result.blowup.describe()}; no file was written")
     save_trajectory(out, scene, result.trajectory)
     return result
+
+
+def _instability_advice(scene, stability) -> str:
+    stable = [n for n, b in stability.bounds.items() if b >= scene.model.dt]
+    return (
+        f"{scene.name}: dt {scene.model.dt:g} s exceeds {stability.integrator}'s stable-dt estimate "
+        f"{stability.dt_bound:.3g} s; expect a blow-up (stable at this dt: {', '.join(stable)})"
+    )
+
+
+def _cmd_check(args):
+    from ._stability import estimate_stability
+
+    scene, _, _ = _prepare_scene(args)
+    stability = estimate_stability(scene.model, scene.params, scene.state)
+    m = scene.model
+    print(
+        f"{scene.name}: {m.particle_count} particles, {m.spring_count} springs, terms {', '.join(m.terms)}; "
+        f"dt {m.dt:g} s, integrator {m.integrator}"
+    )
+    print(
+        f"linearised at the initial state{' with every particle in ground contact' if m.has('ground') else ''}: "
+        f"omega_max {stability.omega_max:.4g} rad/s, damping rate {stability.damping_max:.4g} 1/s"
+    )
+    print(stability.table())
+    if stability.margin < 1:
+        print(f"jaxspring: warning: {_instability_advice(scene, stability)}", file=sys.stderr)
+        return 1
+    print(f"ok: {m.integrator} at dt {m.dt:g} s is within its stable dt (margin {stability.margin:.3g}x)")
+    return 0
+
+
+def _cmd_bench(args):
+    from . import _accuracy
+    from ._errors import InputError
+
+    table = _accuracy.QUICK_SWEEPS if args.quick else _accuracy.SWEEPS
+    names = [n.strip() for n in args.scenes.split(",")] if args.scenes else list(table)
+    for name in names:
+        if name not in table:
+            raise InputError("--scenes", f"no accuracy sweep for {name!r}", f"use some of {', '.join(table)}")
+    if args.repeats < 1:
+        raise InputError("--repeats", f"must be >= 1, got {args.repeats}", "time at least one run")
+    out = Path(args.out_dir)
+    if not out.is_dir():
+        if out.exists() or not out.parent.is_dir():
+            raise InputError("--out-dir", f"cannot create folder {str(out)!r}", "choose a folder")
+        out.mkdir()
+
+    def progress(row):
+        if not args.quiet:
+            print(
+                f"{row.scene:12s} {row.integrator:20s} dt {row.dt:9.3g}  {row.seconds_per_simulated_second:9.3g} s/s"
+                f"  error {row.error:9.2e}  energy error {row.energy_error:9.2e}  {'stable' if row.stable else 'UNSTABLE'}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    rows = _accuracy.sweep(names, quick=args.quick, repeats=args.repeats, progress=progress)
+    _accuracy.write_csv(rows, out / "accuracy.csv")
+    (out / "accuracy.md").write_text(_accuracy.markdown(rows))
+    _accuracy.plot(rows, out / "accuracy.png")
+    print(_accuracy.markdown(rows))
+    print(f"wrote {out / 'accuracy.csv'}, {out / 'accuracy.md'}, {out / 'accuracy.png'}")
 
 
 def _summary(scene, result, out) -> str:

@@ -155,6 +155,7 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             ground="kg" in params,
             integrator=integrator,
             dt=dt,
+            lattice_shape=lattice,
         )
         scene_params = check_params(model, Params(**{k: jnp.asarray(v, dtype=float) for k, v in params.items()}))
     except InputError as exc:

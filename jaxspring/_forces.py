@@ -13,6 +13,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 Y_AXIS = 1
 
@@ -69,9 +70,47 @@ class Springs:
 
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
+            if model.lattice is not None:
+                return self.lattice_force(model, params, x, v)
             f, _ = self.spring_vectors(model, params, x, v)
             a, b = model.springs[:, 0], model.springs[:, 1]
             return jnp.zeros_like(x).at[a].add(f).at[b].add(-f)
+
+    def lattice_force(self, model, params, x, v):
+        """The same force on a lattice, one neighbour family at a time, as array shifts.
+
+        For family `offset` the springs join every lattice cell i to i + offset: their
+        vectors are a difference of two shifted views of the (shape..., 3) positions,
+        and their forces go back by padding (no gather, no scatter), which XLA fuses
+        into a few vectorised loops. Per-spring ks, kd and rest lengths are contiguous
+        slices of the spring arrays, because families are stored in order.
+        """
+        shape, offsets = model.lattice
+        grid_x, grid_v = x.reshape(shape + (3,)), v.reshape(shape + (3,))
+        total = jnp.zeros_like(grid_x)
+        start = 0
+        for offset in offsets:
+            lo = tuple(max(0, -o) for o in offset)
+            hi = tuple(max(0, o) for o in offset)
+            region = tuple(n - abs(o) for n, o in zip(shape, offset))
+            src = tuple(slice(a, n - b) for a, b, n in zip(lo, hi, shape))
+            dst = tuple(slice(b, n - a) for a, b, n in zip(lo, hi, shape))
+            count = int(np.prod(region))
+
+            def per_family(value, start=start, count=count, region=region):
+                if jnp.ndim(value) == 0:
+                    return value
+                return value[start : start + count].reshape(region + (1,))
+
+            d = grid_x[dst] - grid_x[src]
+            length = safe_norm(d, keepdims=True)
+            unit = safe_direction(d, length)
+            extension = length - per_family(model.rest_length)
+            closing = jnp.sum((grid_v[dst] - grid_v[src]) * unit, axis=-1, keepdims=True)
+            f = (per_family(params.ks) * extension + per_family(params.kd) * closing) * unit
+            total = total + jnp.pad(f, list(zip(lo, hi)) + [(0, 0)]) - jnp.pad(f, list(zip(hi, lo)) + [(0, 0)])
+            start += count
+        return total.reshape(x.shape)
 
     def energy(self, model, params, x):
         with jax.named_scope(self.name):

@@ -30,6 +30,9 @@ class Model:
         terms: names of the force terms, e.g. ("springs", "gravity") (static).
         integrator: name of the time integrator (static).
         dt: time step [s] (static).
+        lattice: (shape, offsets) when the springs are whole lattice neighbour families
+            in `lattice_springs` order (static); the spring force then runs as array
+            shifts instead of scatters (same numbers, see `Springs`). None otherwise.
 
     Build one with `make_model`; a loaded scene carries one as `scene.model`.
     """
@@ -42,6 +45,7 @@ class Model:
     terms: tuple = dataclasses.field(metadata=dict(static=True), default=())
     integrator: str = dataclasses.field(metadata=dict(static=True), default="semi_implicit_euler")
     dt: float = dataclasses.field(metadata=dict(static=True), default=1e-3)
+    lattice: tuple | None = dataclasses.field(metadata=dict(static=True), default=None)
 
     @property
     def particle_count(self) -> int:
@@ -90,6 +94,7 @@ def make_model(
     ground: bool = False,
     integrator: str = "semi_implicit_euler",
     dt: float = 1e-3,
+    lattice_shape=None,
 ) -> Model:
     """Build and validate a Model.
 
@@ -103,6 +108,8 @@ def make_model(
         gravity, ground: whether the scene has these terms.
         integrator: one of `jaxspring.INTEGRATORS`.
         dt: time step [s].
+        lattice_shape: the particles' lattice shape when they form one (C order); if
+            the springs are whole neighbour families of it, the structured fast path is used.
 
     Example:
         >>> model = make_model([[0, 1]], mass=[1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]],
@@ -167,7 +174,36 @@ def make_model(
         terms=tuple(terms),
         integrator=integrator,
         dt=float(dt),
+        lattice=lattice_layout(springs_np, lattice_shape, count),
     )
+
+
+def lattice_layout(springs: np.ndarray, shape, count: int):
+    """(shape, offsets) if `springs` is a concatenation of whole lattice neighbour families.
+
+    Family `offset` joins every particle at lattice index i to i + offset (both inside
+    the lattice), in C order of i, as `lattice_springs` writes them. Returns None when
+    the springs are anything else (then the generic path is used).
+    """
+    if shape is None or springs.shape[0] == 0:
+        return None
+    shape = tuple(int(n) for n in shape)
+    if int(np.prod(shape)) != count:
+        return None
+    index = np.arange(count).reshape(shape)
+    cells = np.stack(np.unravel_index(np.arange(count), shape), axis=1)
+    offsets, start = [], 0
+    while start < springs.shape[0]:
+        offset = tuple(int(c) for c in cells[springs[start, 1]] - cells[springs[start, 0]])
+        src = tuple(slice(max(0, -o), n - max(0, o)) for o, n in zip(offset, shape))
+        dst = tuple(slice(max(0, o), n - max(0, -o)) for o, n in zip(offset, shape))
+        family = np.stack([index[src].reshape(-1), index[dst].reshape(-1)], axis=1)
+        end = start + family.shape[0]
+        if family.shape[0] == 0 or not np.array_equal(springs[start:end], family) or offset in offsets:
+            return None
+        offsets.append(offset)
+        start = end
+    return shape, tuple(offsets)
 
 
 def check_params(model: Model, params: Params) -> Params:

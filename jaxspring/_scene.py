@@ -210,6 +210,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
             ground=ground_values is not None,
             integrator=integrator,
             dt=dt,
+            lattice_shape=lattice_shape,
         )
     except InputError as exc:  # name the table the bad value came from
         table = "lattice" if lattice is not None else "particles"

@@ -1,0 +1,63 @@
+"""The structured lattice path gives the generic (scatter) path's numbers."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxspring as js
+
+
+def perturbed(scene, seed=0):
+    key1, key2 = jax.random.split(jax.random.PRNGKey(seed))
+    x = scene.state.x + 0.05 * jax.random.normal(key1, scene.state.x.shape)
+    v = jax.random.normal(key2, scene.state.x.shape) * (~scene.model.pinned)[:, None]
+    return js.State(x=x, v=v)
+
+
+@pytest.mark.parametrize("name", ["chain", "cloth", "jelly", "hard/fine_cloth"])
+def test_lattice_scenes_take_the_structured_path(name):
+    scene = js.load_scene(name)
+    shape, offsets = scene.model.lattice
+    assert shape == scene.lattice_shape and len(offsets) >= 1
+
+
+def test_explicit_topologies_take_the_generic_path():
+    assert js.load_scene("mass_spring").model.lattice is None
+    # a lattice whose springs are not whole neighbour families (one removed) falls back
+    springs = js.lattice_springs((4, 3), ["structural"])[1:]
+    model = js.make_model(springs, 1.0, positions=np.zeros((12, 3)) + np.arange(12)[:, None], lattice_shape=(4, 3))
+    assert model.lattice is None
+
+
+@pytest.mark.parametrize("name", ["cloth", "jelly"])
+@pytest.mark.parametrize("per_spring", [False, True])
+def test_structured_force_rollout_and_gradient_equal_generic(scenes, name, per_spring):
+    scene = scenes[name]
+    params = scene.params
+    if per_spring:
+        count = scene.model.spring_count
+        params = params.replace(ks=params.ks * jnp.linspace(0.5, 1.5, count), kd=params.kd * jnp.linspace(2, 1, count))
+    fast, generic = scene.model, scene.model.replace(lattice=None)
+    state = perturbed(scene)
+    a, b = fast.force(params, state.x, state.v), generic.force(params, state.x, state.v)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
+
+    def loss(p, model):
+        x = js.rollout(model, p, scene.state, steps=100, save_every=50).x
+        return jnp.sum(x[-1] ** 2)
+
+    fa, fb = loss(params, fast), loss(params, generic)
+    assert abs(float(fa) - float(fb)) <= 1e-12 * abs(float(fb))
+    ga, gb = jax.grad(loss)(params, fast), jax.grad(loss)(params, generic)
+    for key in ("ks", "kd"):
+        x, y = np.asarray(getattr(ga, key)), np.asarray(getattr(gb, key))
+        np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-12 * np.abs(y).max())
+
+
+def test_trajectory_files_keep_the_lattice(tmp_path, scenes):
+    scene = scenes["cloth"]
+    traj = js.rollout(scene.model, scene.params, scene.state, steps=10, save_every=10)
+    js.save_trajectory(tmp_path / "c.h5", scene, traj)
+    loaded, _ = js.load_trajectory(tmp_path / "c.h5")
+    assert loaded.model.lattice == scene.model.lattice
