@@ -41,6 +41,13 @@ def safe_direction(d: jax.Array, length: jax.Array) -> jax.Array:
     return d / jnp.where(length > 0, length, 1.0)
 
 
+def _grid_norm(d: jax.Array) -> jax.Array:
+    """safe_norm over the component axis 0 of a grid-layout array (3, *shape), keeping it."""
+    squared = jnp.sum(d * d, axis=0, keepdims=True)
+    positive = squared > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+
+
 def per_item(value: jax.Array) -> jax.Array:
     """A scalar parameter as is; a per-spring/per-particle one as a column (K, 1)."""
     return value if jnp.ndim(value) == 0 else value[:, None]
@@ -70,47 +77,45 @@ class Springs:
 
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
-            if model.lattice is not None:
-                return self.lattice_force(model, params, x, v)
             f, _ = self.spring_vectors(model, params, x, v)
             a, b = model.springs[:, 0], model.springs[:, 1]
             return jnp.zeros_like(x).at[a].add(f).at[b].add(-f)
 
-    def lattice_force(self, model, params, x, v):
-        """The same force on a lattice, one neighbour family at a time, as array shifts.
+    def grid_force(self, model, params, x, v):
+        """The same force on a lattice in grid layout (3, *shape), one neighbour family at a time.
 
         For family `offset` the springs join every lattice cell i to i + offset: their
-        vectors are a difference of two shifted views of the (shape..., 3) positions,
-        and their forces go back by padding (no gather, no scatter), which XLA fuses
-        into a few vectorised loops. Per-spring ks, kd and rest lengths are contiguous
-        slices of the spring arrays, because families are stored in order.
+        vectors are a difference of two shifted views of the positions, and their forces
+        go back by padding (no gather, no scatter), which XLA fuses into a few vectorised
+        loops over the lattice's last axis. Per-spring ks, kd and rest lengths are
+        contiguous slices of the spring arrays, because families are stored in order.
         """
-        shape, offsets = model.lattice
-        grid_x, grid_v = x.reshape(shape + (3,)), v.reshape(shape + (3,))
-        total = jnp.zeros_like(grid_x)
-        start = 0
-        for offset in offsets:
-            lo = tuple(max(0, -o) for o in offset)
-            hi = tuple(max(0, o) for o in offset)
-            region = tuple(n - abs(o) for n, o in zip(shape, offset))
-            src = tuple(slice(a, n - b) for a, b, n in zip(lo, hi, shape))
-            dst = tuple(slice(b, n - a) for a, b, n in zip(lo, hi, shape))
-            count = int(np.prod(region))
+        with jax.named_scope(self.name):
+            shape, offsets = model.lattice
+            total = jnp.zeros_like(x)
+            start = 0
+            for offset in offsets:
+                lo = tuple(max(0, -o) for o in offset)
+                hi = tuple(max(0, o) for o in offset)
+                region = tuple(n - abs(o) for n, o in zip(shape, offset))
+                src = (slice(None),) + tuple(slice(a, n - b) for a, b, n in zip(lo, hi, shape))
+                dst = (slice(None),) + tuple(slice(b, n - a) for a, b, n in zip(lo, hi, shape))
+                count = int(np.prod(region))
 
-            def per_family(value, start=start, count=count, region=region):
-                if jnp.ndim(value) == 0:
-                    return value
-                return value[start : start + count].reshape(region + (1,))
+                def per_family(value, start=start, count=count, region=region):
+                    if jnp.ndim(value) == 0:
+                        return value
+                    return value[start : start + count].reshape((1,) + region)
 
-            d = grid_x[dst] - grid_x[src]
-            length = safe_norm(d, keepdims=True)
-            unit = safe_direction(d, length)
-            extension = length - per_family(model.rest_length)
-            closing = jnp.sum((grid_v[dst] - grid_v[src]) * unit, axis=-1, keepdims=True)
-            f = (per_family(params.ks) * extension + per_family(params.kd) * closing) * unit
-            total = total + jnp.pad(f, list(zip(lo, hi)) + [(0, 0)]) - jnp.pad(f, list(zip(hi, lo)) + [(0, 0)])
-            start += count
-        return total.reshape(x.shape)
+                d = x[dst] - x[src]
+                length = _grid_norm(d)
+                unit = safe_direction(d, length)
+                extension = length - per_family(model.rest_length)
+                closing = jnp.sum((v[dst] - v[src]) * unit, axis=0, keepdims=True)
+                f = (per_family(params.ks) * extension + per_family(params.kd) * closing) * unit
+                total = total + jnp.pad(f, [(0, 0)] + list(zip(lo, hi))) - jnp.pad(f, [(0, 0)] + list(zip(hi, lo)))
+                start += count
+            return total
 
     def energy(self, model, params, x):
         with jax.named_scope(self.name):
@@ -133,6 +138,11 @@ class Drag:
             coefficient = per_item(params.cd) * model.drag[:, None]
             return -coefficient * safe_norm(v, keepdims=True) * v
 
+    def grid_force(self, model, params, x, v):
+        with jax.named_scope(self.name):
+            coefficient = model.to_grid(params.cd) * model.to_grid(model.drag)
+            return -coefficient * _grid_norm(v) * v
+
     def energy(self, model, params, x):
         return jnp.zeros((), x.dtype)
 
@@ -146,6 +156,11 @@ class Gravity:
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
             return model.mass[:, None] * params.gravity[None, :]
+
+    def grid_force(self, model, params, x, v):
+        with jax.named_scope(self.name):
+            weight = model.to_grid(model.mass) * params.gravity.reshape((3,) + (1,) * (x.ndim - 1))
+            return jnp.broadcast_to(weight, x.shape)
 
     def energy(self, model, params, x):
         with jax.named_scope(self.name):
@@ -168,6 +183,15 @@ class Ground:
             normal_force = jnp.where(depth > 0, params.kg * depth - params.kgd * v[:, Y_AXIS], 0.0)
             up = jnp.zeros(3, x.dtype).at[Y_AXIS].set(1.0)
             return normal_force[:, None] * up[None, :]
+
+    def grid_force(self, model, params, x, v):
+        with jax.named_scope(self.name):
+            depth = params.ground_height - x[Y_AXIS]
+            kg, kgd = (model.to_grid(p) for p in (params.kg, params.kgd))
+            kg, kgd = (p[0] if jnp.ndim(p) else p for p in (kg, kgd))
+            normal_force = jnp.where(depth > 0, kg * depth - kgd * v[Y_AXIS], 0.0)
+            zero = jnp.zeros_like(normal_force)
+            return jnp.stack([normal_force if axis == Y_AXIS else zero for axis in range(3)])
 
     def energy(self, model, params, x):
         with jax.named_scope(self.name):

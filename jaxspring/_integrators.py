@@ -176,12 +176,18 @@ INTEGRATORS = {
 
 
 def step(model, params, state: State) -> State:
-    """Advance `state` by one time step `model.dt` with the model's integrator.
+    """Advance `state`, in the model's internal layout, by one step `model.dt`.
 
-    Example:
-        >>> next_state = js.step(scene.model, scene.params, scene.state)
+    Lattice models work in grid layout (3, *shape) with the grid force; others in
+    (N, 3). The integrators only combine arrays elementwise around the force, so the
+    same code serves both. (`model.step` takes and returns the (N, 3) layout.)
     """
     integrator = INTEGRATORS[model.integrator].step
-    free = (~model.pinned)[:, None]
-    x, v = integrator(lambda x, v: model.force(params, x, v), model.mass[:, None], free, state.x, state.v, model.dt)
+    if model.lattice is not None:
+        force = lambda x, v: model.grid_force(params, x, v)  # noqa: E731
+        mass, free = model.to_grid(model.mass), model.to_grid(~model.pinned)
+    else:
+        force = lambda x, v: model.force(params, x, v)  # noqa: E731
+        mass, free = model.mass[:, None], (~model.pinned)[:, None]
+    x, v = integrator(force, mass, free, state.x, state.v, model.dt)
     return State(x=x, v=v)

@@ -60,10 +60,55 @@ class Model:
 
     def force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
         """Total force on every particle [N], shape (N, 3)."""
+        if self.lattice is not None:
+            return self.from_grid(self.grid_force(params, self.to_grid(x), self.to_grid(v)))
         total = jnp.zeros_like(x)
         for name in self.terms:
             total = total + TERMS[name].force(self, params, x, v)
         return total
+
+    # Lattice models step in "grid layout": arrays (3, *shape), components first, so the
+    # spring families are shifts along the lattice axes and the innermost loop runs
+    # along the lattice's last axis (vectorisable), not over 3 components.
+
+    def to_grid(self, values: jax.Array) -> jax.Array:
+        """(N, 3) -> (3, *shape); (N,) -> (1, *shape); a scalar stays a scalar."""
+        shape = self.lattice[0]
+        values = jnp.asarray(values)
+        if values.ndim == 0:
+            return values
+        if values.ndim == 1:
+            return values.reshape((1,) + shape)
+        return jnp.moveaxis(values, -1, 0).reshape((3,) + shape)
+
+    def from_grid(self, values: jax.Array) -> jax.Array:
+        """(3, *shape) -> (N, 3)."""
+        return jnp.moveaxis(values.reshape((3, -1)), 0, -1)
+
+    def grid_force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
+        """Total force in grid layout (lattice models only)."""
+        total = jnp.zeros_like(x)
+        for name in self.terms:
+            total = total + TERMS[name].grid_force(self, params, x, v)
+        return total
+
+    def to_internal(self, state: State) -> State:
+        """The state in the layout the step works in (grid layout for lattices)."""
+        if self.lattice is None:
+            return state
+        return State(x=self.to_grid(state.x), v=self.to_grid(state.v))
+
+    def from_internal(self, state: State) -> State:
+        if self.lattice is None:
+            return state
+        return State(x=self.from_grid(state.x), v=self.from_grid(state.v))
+
+    def positions_from_internal(self, x: jax.Array) -> jax.Array:
+        """Internal-layout positions with leading axes (..., layout) -> (..., N, 3)."""
+        if self.lattice is None:
+            return x
+        lead = x.shape[: x.ndim - 1 - len(self.lattice[0])]
+        return jnp.moveaxis(x.reshape(lead + (3, -1)), -2, -1)
 
     def energy(self, params: Params, state: State) -> jax.Array:
         """Total mechanical energy [J]: kinetic plus every term's potential."""
@@ -73,6 +118,10 @@ class Model:
 
     def step(self, params: Params, state: State) -> State:
         """Advance one time step dt with the model's integrator."""
+        return self.from_internal(self.step_internal(params, self.to_internal(state)))
+
+    def step_internal(self, params: Params, state: State) -> State:
+        """One step on a state in the internal layout (see `to_internal`)."""
         return _integrate(self, params, state)
 
     def replace(self, **changes) -> Model:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -13,12 +14,12 @@ from ._params import Params
 from ._state import State, Trajectory
 
 
-def rollout(model: Model, params: Params, state: State, steps: int, save_every: int = 1) -> Trajectory:
+def rollout(model: Model, params: Params, state: State, steps: int, save_every: int = 1, checkpoint=None) -> Trajectory:
     """Simulate `steps` time steps and keep every `save_every`-th state.
 
-    Pure and differentiable: works under `jax.jit` (with `steps`, `save_every`
-    static), `jax.vmap` over params and/or state, and `jax.grad` with respect
-    to params and state.
+    Pure and differentiable: works under `jax.jit` (with `steps`, `save_every`,
+    `checkpoint` static), `jax.vmap` over params and/or state, and `jax.grad` with
+    respect to params and state.
 
     Args:
         model: static structure (topology, force terms, integrator, dt).
@@ -26,6 +27,11 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
         state: initial state, x and v of shape (N, 3).
         steps: number of time steps; a multiple of `save_every`.
         save_every: keep one frame every this many steps.
+        checkpoint: reverse-mode memory against time. None (default): keep every
+            step's intermediate values, the fastest gradient, memory ~ steps. "sqrt":
+            keep only the state every ~sqrt(steps) steps and recompute in between,
+            memory ~ sqrt(steps) states, about one more forward pass. An int K: the
+            same with segments of K steps. The forward values are identical.
     Returns:
         Trajectory with x, v of shape (steps // save_every + 1, N, 3) and t of
         shape (frames,); frame 0 is the initial state.
@@ -35,7 +41,11 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
         >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
     """
     frames = _frame_count(steps, save_every)
-    _, x, v = _simulate(model, params, state, frames, save_every)
+    segment = _segment_length(checkpoint, frames * save_every)
+    if segment is None:
+        _, x, v = _simulate(model, params, state, frames, save_every)
+    else:
+        _, x, v = _simulate_checkpointed(model, params, state, frames, save_every, segment)
     t = jnp.arange(frames + 1) * (save_every * model.dt)
     return Trajectory(
         x=jnp.concatenate([state.x[None], x], axis=0),
@@ -69,15 +79,73 @@ def _frame_count(steps, save_every) -> int:
 
 @functools.partial(jax.jit, static_argnames=("frames", "save_every"))
 def _simulate(model, params, state, frames, save_every):
+    """(end state, x, v (frames, N, 3)); the scan runs in the model's internal layout."""
+
     def one_step(current, _):
-        return model.step(params, current), None
+        return model.step_internal(params, current), None
 
     def one_frame(current, _):
         current, _ = jax.lax.scan(one_step, current, None, length=save_every)
         return current, (current.x, current.v)
 
-    end, (x, v) = jax.lax.scan(one_frame, state, None, length=frames)
-    return end, x, v
+    end, (x, v) = jax.lax.scan(one_frame, model.to_internal(state), None, length=frames)
+    return model.from_internal(end), model.positions_from_internal(x), model.positions_from_internal(v)
+
+
+def _segment_length(checkpoint, steps: int):
+    if checkpoint is None:
+        return None
+    if checkpoint == "sqrt":
+        return max(1, math.isqrt(max(steps, 1)))
+    if isinstance(checkpoint, bool) or not isinstance(checkpoint, int) or checkpoint < 1:
+        raise InputError("checkpoint", f"must be None, 'sqrt' or a positive int, got {checkpoint!r}", "use 'sqrt'")
+    return int(checkpoint)
+
+
+@functools.partial(jax.jit, static_argnames=("frames", "save_every", "segment"))
+def _simulate_checkpointed(model, params, state, frames, save_every, segment):
+    """`_simulate` storing only segment-boundary states for reverse mode.
+
+    Every step is rematerialised (its residuals are recomputed from its input state
+    during the backward pass), and so is every segment of `segment` steps: the
+    backward pass keeps one state per segment plus one per step of the segment
+    being differentiated.
+    """
+    step = jax.checkpoint(lambda current: model.step_internal(params, current))
+
+    def run(current, length):
+        return jax.lax.scan(lambda c, _: (step(c), None), current, None, length=length)[0]
+
+    if save_every >= segment:
+        chunks, rest = divmod(save_every, segment)
+        chunk = jax.checkpoint(lambda current: run(current, segment))
+
+        def one_frame(current, _):
+            current = jax.lax.scan(lambda c, _: (chunk(c), None), current, None, length=chunks)[0]
+            if rest:
+                current = jax.checkpoint(lambda c: run(c, rest))(current)
+            return current, (current.x, current.v)
+
+        end, (x, v) = jax.lax.scan(one_frame, model.to_internal(state), None, length=frames)
+        return model.from_internal(end), model.positions_from_internal(x), model.positions_from_internal(v)
+
+    per_block = max(1, segment // save_every)
+    blocks, rest = divmod(frames, per_block)
+
+    def frame(current, _):
+        current = run(current, save_every)
+        return current, (current.x, current.v)
+
+    def block(current, count):
+        return jax.lax.scan(frame, current, None, length=count)
+
+    checkpointed = jax.checkpoint(lambda c: block(c, per_block))
+    end, (x, v) = jax.lax.scan(lambda c, _: checkpointed(c), model.to_internal(state), None, length=blocks)
+    x, v = x.reshape((-1,) + x.shape[2:]), v.reshape((-1,) + v.shape[2:])
+    if rest:
+        end, (xr, vr) = jax.checkpoint(lambda c: block(c, rest))(end)
+        x, v = jnp.concatenate([x, xr]), jnp.concatenate([v, vr])
+    return model.from_internal(end), model.positions_from_internal(x), model.positions_from_internal(v)
 
 
 def energy(model: Model, params: Params, state: State) -> jax.Array:

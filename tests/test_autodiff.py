@@ -81,4 +81,5 @@ def test_vmap_over_initial_states_equals_separate_rollouts(scenes):
     batched = jax.vmap(run)(states)
     for i in (0, 3, 7):
         single = run(js.State(x=states.x[i], v=states.v[i]))
-        np.testing.assert_array_equal(np.asarray(batched[i]), np.asarray(single))
+        # the batched lattice step fuses differently: round-off (1e-14 m), not bitwise
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(single), rtol=1e-12, atol=1e-12)

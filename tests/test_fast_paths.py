@@ -61,3 +61,40 @@ def test_trajectory_files_keep_the_lattice(tmp_path, scenes):
     js.save_trajectory(tmp_path / "c.h5", scene, traj)
     loaded, _ = js.load_trajectory(tmp_path / "c.h5")
     assert loaded.model.lattice == scene.model.lattice
+
+
+def cloth_loss(scene, steps, every, checkpoint):
+    def loss(ks, kd):
+        params = scene.params.replace(ks=ks, kd=kd)
+        x = js.rollout(scene.model, params, scene.state, steps, every, checkpoint=checkpoint).x
+        return jnp.mean(x[-1] ** 2) + jnp.mean(x[:, 5] ** 2)
+
+    return loss
+
+
+@pytest.mark.parametrize("steps, every, checkpoint", [(200, 200, "sqrt"), (200, 10, 7), (210, 3, 50)])
+def test_checkpointed_gradient_equals_plain(scenes, steps, every, checkpoint):
+    scene = scenes["cloth"]
+    plain = jax.grad(cloth_loss(scene, steps, every, None), argnums=(0, 1))(5000.0, 0.5)
+    saved = jax.grad(cloth_loss(scene, steps, every, checkpoint), argnums=(0, 1))(5000.0, 0.5)
+    for a, b in zip(plain, saved):
+        assert abs(float(a) - float(b)) <= 1e-9 * abs(float(a))
+    x0 = js.rollout(scene.model, scene.params, scene.state, steps, every).x
+    x1 = js.rollout(scene.model, scene.params, scene.state, steps, every, checkpoint=checkpoint).x
+    np.testing.assert_array_equal(np.asarray(x0), np.asarray(x1))
+
+
+def test_hundred_thousand_step_gradient_fits_in_one_gib(scenes):
+    scene = scenes["cloth"]
+    grad = jax.jit(jax.value_and_grad(cloth_loss(scene, 100_000, 100_000, "sqrt"), argnums=(0, 1)))
+    memory = grad.lower(5000.0, 0.5).compile().memory_analysis()
+    total = memory.temp_size_in_bytes + memory.argument_size_in_bytes + memory.output_size_in_bytes
+    assert total < 2**30, total / 2**20
+    plain = jax.jit(jax.value_and_grad(cloth_loss(scene, 100_000, 100_000, None), argnums=(0, 1)))
+    assert plain.lower(5000.0, 0.5).compile().memory_analysis().temp_size_in_bytes > 2**30  # why it is needed
+
+
+def test_checkpoint_argument_is_checked(scenes):
+    scene = scenes["chain"]
+    with pytest.raises(js.InputError, match="checkpoint"):
+        js.rollout(scene.model, scene.params, scene.state, 10, 10, checkpoint=0)
