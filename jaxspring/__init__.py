@@ -91,3 +91,7 @@ from ._accuracy import recommend as recommend_settings  # noqa: E402
 from ._accuracy import sweep as accuracy_sweep  # noqa: E402
 
 __all__ += ["AccuracyRow", "accuracy_sweep", "plot_accuracy", "read_accuracy", "recommend_settings"]
+
+from ._sharding import batch_mesh, shard_batch  # noqa: E402
+
+__all__ += ["batch_mesh", "shard_batch"]

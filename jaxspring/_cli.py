@@ -47,10 +47,16 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--dt", type=float, help="time step [s] (default: the scene's)")
     check.add_argument("--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)")
 
-    bench = sub.add_parser("bench", help="benchmarks: speed against error of every integrator")
-    bench.add_argument("kind", choices=["accuracy"], help="accuracy: dt sweep against float64 references")
-    bench.add_argument("--scenes", help="comma-separated scenes (default: the four seed scenes)")
-    bench.add_argument("--quick", action="store_true", help="short horizons, mass_spring and chain only (a smoke run)")
+    bench = sub.add_parser("bench", help="benchmarks: speed against peers; speed against error of every integrator")
+    bench.add_argument(
+        "kind",
+        choices=["speed", "accuracy"],
+        help="speed: steps/s, gradient cost, compile time, memory, batches, against peers (float32); "
+        "accuracy: dt sweep against float64 references",
+    )
+    bench.add_argument("--scenes", help="accuracy: comma-separated scenes (default: the four seed scenes)")
+    bench.add_argument("--peers", default="jax_segment_sum,numpy,warp", help="speed: peers to measure")
+    bench.add_argument("--quick", action="store_true", help="small workloads and short horizons (a smoke run)")
     bench.add_argument("--repeats", type=int, default=3, help="timed runs per configuration; the median counts")
     bench.add_argument("--out-dir", default="bench_results", help="folder for the CSV, table and plot")
     bench.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -95,7 +101,7 @@ def main(argv=None) -> int:
     from ._errors import JaxspringError
 
     try:
-        if getattr(args, "dtype", "float32") == "float64" or args.command == "bench":
+        if getattr(args, "dtype", "float32") == "float64" or (args.command == "bench" and args.kind == "accuracy"):
             import jax
 
             jax.config.update("jax_enable_x64", True)
@@ -214,6 +220,59 @@ def _cmd_check(args):
 
 
 def _cmd_bench(args):
+    if args.kind == "speed":
+        return _bench_speed(args)
+    return _bench_accuracy(args)
+
+
+def _bench_folder(args) -> Path:
+    from ._errors import InputError
+
+    if args.repeats < 1:
+        raise InputError("--repeats", f"must be >= 1, got {args.repeats}", "time at least one run")
+    out = Path(args.out_dir)
+    if not out.is_dir():
+        if out.exists() or not out.parent.is_dir():
+            raise InputError("--out-dir", f"cannot create folder {str(out)!r}", "choose a folder")
+        out.mkdir()
+    return out
+
+
+def _bench_speed(args):
+    import jax
+
+    from . import _peers, _speed
+    from ._errors import InputError
+
+    jax.config.update("jax_enable_x64", False)  # speed is measured in float32
+    peers = [p.strip() for p in args.peers.split(",") if p.strip()]
+    for peer in peers:
+        if peer not in ("jax_segment_sum", "numpy", "warp"):
+            raise InputError("--peers", f"unknown peer {peer!r}", "use some of jax_segment_sum, numpy, warp")
+    if "warp" in peers and not _peers.warp_available():
+        print("jaxspring: notice: warp-lang is not installed; skipping the Warp peer", file=sys.stderr)
+    out = _bench_folder(args)
+
+    def progress(row):
+        if not args.quiet:
+            extra = "" if row.implementation != "jaxspring" else f"  grad/fwd {row.gradient_ratio:.2f}"
+            print(
+                f"{row.workload:14s} {row.implementation:16s} {row.steps_per_second:12,.1f} steps/s"
+                f"  {row.ns_per_spring_step:8.2f} ns/spring-step{extra}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    rows = _speed.sweep(quick=args.quick, repeats=args.repeats, peers=peers, progress=progress)
+    _speed.write_csv(rows, out / "speed.csv")
+    table = _speed.markdown(rows) + f"\nPeak process memory: {_speed.peak_rss_mib():.0f} MiB.\n"
+    (out / "speed.md").write_text(table)
+    _speed.plot(rows, out / "speed.png")
+    print(table)
+    print(f"wrote {out / 'speed.csv'}, {out / 'speed.md'}, {out / 'speed.png'}")
+
+
+def _bench_accuracy(args):
     from . import _accuracy
     from ._errors import InputError
 
@@ -222,13 +281,7 @@ def _cmd_bench(args):
     for name in names:
         if name not in table:
             raise InputError("--scenes", f"no accuracy sweep for {name!r}", f"use some of {', '.join(table)}")
-    if args.repeats < 1:
-        raise InputError("--repeats", f"must be >= 1, got {args.repeats}", "time at least one run")
-    out = Path(args.out_dir)
-    if not out.is_dir():
-        if out.exists() or not out.parent.is_dir():
-            raise InputError("--out-dir", f"cannot create folder {str(out)!r}", "choose a folder")
-        out.mkdir()
+    out = _bench_folder(args)
 
     def progress(row):
         if not args.quiet:

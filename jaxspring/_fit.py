@@ -25,6 +25,7 @@ from ._observations import Observations
 from ._params import NON_NEGATIVE
 from ._rollout import rollout
 from ._scene import Scene
+from ._sharding import shard_batch
 from ._state import State
 
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
@@ -381,7 +382,9 @@ def fit_batch(
     `observations` holds one target (shared by all members) or one per member;
     `inits` one start per member (default: one member starting at the scene's values).
     `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
-    after every iteration (the CLI checkpoints from it).
+    after every iteration (the CLI checkpoints from it). With several devices and a
+    member count divisible by their number, the members are split across them
+    (`shard_batch`); the numbers are the same as on one device.
 
     Example:
         >>> results = js.fit_batch(scene, [obs], ["ks", "kd"], inits=[{"ks": 300.0}, {"ks": 3000.0}])
@@ -419,6 +422,10 @@ def fit_batch(
     if progress is None:
         theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], present[n].shape)) for s in start_values]) for n in names}
         progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
+    if jax.device_count() > 1 and members % jax.device_count() == 0:  # members across devices
+        progress.theta = shard_batch(progress.theta)
+        if batched_data:
+            data = shard_batch(data)
     start_clock = time.perf_counter() - progress.wall_s
     while not progress.done:
         stage = stages[progress.stage]

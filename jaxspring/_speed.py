@@ -1,0 +1,262 @@
+"""Speed: forward steps/s, gradient cost, compile time, memory and batch throughput,
+against peers measured in the same run (see `_peers`).
+
+Every time is the median of `repeats` runs of an already compiled function. Memory is
+XLA's own accounting of the compiled program (arguments + outputs + temporaries), the
+peak the program needs; the process's peak RSS is reported once at the end.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import resource
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _peers
+from ._rollout import _simulate
+from ._scene import Scene, load_scene, scene_from_dict
+
+# cloth sizes of the scaling study: the seed cloth's material, spacing and dt
+CLOTH_SIZES = ((31, 41), (100, 100), (310, 410))
+BATCH = 64
+
+
+def cloth_of_size(shape) -> Scene:
+    """The seed cloth's physics on a lattice of `shape`, pinned at the two corners of one edge."""
+    nx, nz = shape
+    return scene_from_dict(
+        {
+            "name": f"cloth_{nx}x{nz}",
+            "dt": 0.002,
+            "physics": {"ks": 5000.0, "kd": 0.5, "cd": 0.0025, "gravity": [0.0, -9.81, 0.0]},
+            "lattice": {
+                "shape": [nx, nz],
+                "axes": ["x", "z"],
+                "spacing": 1.0,
+                "springs": ["structural", "shear"],
+                "pinned": [[0, 0], [nx - 1, 0]],
+                "mass": 1.0,
+                "drag": True,
+            },
+        }
+    )
+
+
+@dataclasses.dataclass
+class SpeedRow:
+    workload: str
+    implementation: str
+    particles: int
+    springs: int
+    steps_per_second: float
+    ns_per_spring_step: float
+    gradient_ratio: float = float("nan")  # value_and_grad time / forward time, same horizon
+    gradient_mode: str = ""
+    compile_forward_s: float = float("nan")
+    compile_gradient_s: float = float("nan")
+    memory_forward_mib: float = float("nan")
+    memory_gradient_mib: float = float("nan")
+    batch_ratio: float = float("nan")  # rollout-steps/s of a batch of 64 over a single rollout
+    max_difference: float = float("nan")  # peer's final positions against jaxspring's [m]
+
+
+def _median_time(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def _memory_mib(compiled) -> float:
+    m = compiled.memory_analysis()
+    return (m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes) / 2**20
+
+
+def _steps_for(springs: int) -> int:
+    """Enough steps that a jaxspring run takes a good fraction of a second."""
+    return int(max(200, min(20_000, 2e8 / max(springs, 1) / 10)) // 100 * 100)
+
+
+def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: int, batch: bool) -> SpeedRow:
+    m, p, s = scene.model, scene.params, scene.state
+    start = time.perf_counter()
+    forward = _simulate.lower(m, p, s, 1, steps).compile()
+    compile_forward = time.perf_counter() - start
+    jax.block_until_ready(forward(m, p, s))
+    wall = _median_time(lambda: jax.block_until_ready(forward(m, p, s)), repeats)
+    row = SpeedRow(
+        scene.name, "jaxspring", m.particle_count, m.spring_count, steps / wall, wall / steps / m.spring_count * 1e9
+    )
+    row.compile_forward_s, row.memory_forward_mib = compile_forward, _memory_mib(forward)
+
+    names = [n for n in ("ks", "kd", "cd") if getattr(p, n) is not None]
+
+    def make_loss(checkpoint):
+        def loss(values):
+            params = p.replace(**values)
+            from ._rollout import rollout
+
+            x = rollout(m, params, s, gradient_steps, gradient_steps, checkpoint=checkpoint).x
+            return jnp.mean(x[-1] ** 2)
+
+        return loss
+
+    values = {n: getattr(p, n) for n in names}
+    mode = None
+    for checkpoint in (None, "sqrt"):
+        start = time.perf_counter()
+        compiled = jax.jit(jax.value_and_grad(make_loss(checkpoint))).lower(values).compile()
+        if _memory_mib(compiled) < 2048 or checkpoint == "sqrt":
+            mode = checkpoint
+            row.compile_gradient_s = time.perf_counter() - start
+            break
+    row.gradient_mode = "plain" if mode is None else "checkpoint sqrt"
+    row.memory_gradient_mib = _memory_mib(compiled)
+    jax.block_until_ready(compiled(values))
+    grad_wall = _median_time(lambda: jax.block_until_ready(compiled(values)), repeats)
+    fwd = _simulate.lower(m, p, s, 1, gradient_steps).compile()
+    jax.block_until_ready(fwd(m, p, s))
+    fwd_wall = _median_time(lambda: jax.block_until_ready(fwd(m, p, s)), repeats)
+    row.gradient_ratio = grad_wall / fwd_wall
+
+    if batch:
+        ks = p.ks * jnp.linspace(0.8, 1.2, BATCH, dtype=s.x.dtype)
+        batched = jax.jit(jax.vmap(lambda k: _simulate(m, p.replace(ks=k), s, 1, steps)[0].x)).lower(ks).compile()
+        jax.block_until_ready(batched(ks))
+        batch_wall = _median_time(lambda: jax.block_until_ready(batched(ks)), repeats)
+        row.batch_ratio = (BATCH * steps / batch_wall) / row.steps_per_second
+    return row
+
+
+def measure_peer(scene: Scene, name: str, steps: int, repeats: int, reference: np.ndarray | None) -> SpeedRow:
+    make = {"jax_segment_sum": _peers.jax_segment_sum, "numpy": _peers.numpy_step, "warp": _peers.warp_step}[name]
+    run = make(scene)
+    out = run(steps)  # compile / warm up, and check
+    wall = _median_time(lambda: run(steps), repeats)
+    m = scene.model
+    row = SpeedRow(
+        scene.name, name, m.particle_count, m.spring_count, steps / wall, wall / steps / m.spring_count * 1e9
+    )
+    if reference is not None:
+        row.max_difference = float(np.max(np.abs(out - reference)))
+    return row
+
+
+def workloads(quick: bool = False):
+    if quick:
+        return [load_scene("chain"), cloth_of_size((31, 41))]
+    return [load_scene(n) for n in ("mass_spring", "chain", "jelly", "cloth")] + [
+        cloth_of_size(s) for s in CLOTH_SIZES[1:]
+    ]
+
+
+def sweep(quick: bool = False, repeats: int = 5, peers=("jax_segment_sum", "numpy", "warp"), progress=None):
+    """Measure jaxspring and the peers on every workload (float32)."""
+    rows = []
+    for scene in workloads(quick):
+        springs = scene.model.spring_count
+        steps = 200 if quick else _steps_for(springs)
+        big = scene.model.particle_count > 20_000
+        gradient_steps = 200 if (quick or big) else 2000
+        row = measure_jaxspring(scene, steps, repeats, gradient_steps, batch=not big)
+        rows.append(row)
+        if progress:
+            progress(row)
+        has_ground = scene.model.has("ground")
+        for peer in peers:
+            if has_ground or (peer == "warp" and not _peers.warp_available()):
+                continue
+            peer_steps = steps
+            if peer == "numpy":  # slow: a fixed time budget
+                peer_steps = max(10, int(min(steps, 2e6 / max(springs, 1))))
+            reference = np.asarray(
+                jax.block_until_ready(_simulate(scene.model, scene.params, scene.state, 1, peer_steps)[0].x)
+            )
+            rows.append(
+                measure_peer(scene, peer, peer_steps, max(3, repeats // 2) if peer == "numpy" else repeats, reference)
+            )
+            if progress:
+                progress(rows[-1])
+    return rows
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def write_csv(rows, path):
+    from ._files import atomic_path
+
+    with atomic_path(Path(path)) as temporary, open(temporary, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow([f.name for f in dataclasses.fields(SpeedRow)])
+        for row in rows:
+            writer.writerow(dataclasses.astuple(row))
+
+
+def markdown(rows) -> str:
+    by = {(r.workload, r.implementation): r for r in rows}
+    peers = [p for p in ("jax_segment_sum", "numpy", "warp") if any(r.implementation == p for r in rows)]
+    header = "| workload | particles | springs | jaxspring steps/s | " + " | ".join(f"x {p}" for p in peers)
+    header += " | grad / fwd | compile fwd / grad [s] | memory fwd / grad [MiB] | batch 64 / single |"
+    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    for r in rows:
+        if r.implementation != "jaxspring":
+            continue
+        ratios = []
+        for p in peers:
+            peer = by.get((r.workload, p))
+            ratios.append(f"{r.steps_per_second / peer.steps_per_second:.1f}" if peer else "—")
+        batch = "—" if np.isnan(r.batch_ratio) else f"{r.batch_ratio:.2f}"
+        grad = f"{r.gradient_ratio:.2f}" + (" (ckpt)" if r.gradient_mode != "plain" else "")
+        lines.append(
+            f"| {r.workload} | {r.particles} | {r.springs} | {r.steps_per_second:,.0f} | {' | '.join(ratios)} | "
+            f"{grad} | {r.compile_forward_s:.2f} / {r.compile_gradient_s:.2f} | "
+            f"{r.memory_forward_mib:.1f} / {r.memory_gradient_mib:.1f} | {batch} |"
+        )
+    lines += ["", "Peers (steps/s):", ""]
+    lines += [
+        "| workload | implementation | steps/s | ns per spring-step | max diff vs jaxspring [m] |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if r.implementation != "jaxspring":
+            lines.append(
+                f"| {r.workload} | {r.implementation} | {r.steps_per_second:,.1f} | {r.ns_per_spring_step:.2f} | "
+                f"{r.max_difference:.1e} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows, path):
+    """Cost per spring-step against size for the cloth lattices, per implementation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ._files import atomic_path
+
+    cloths = [r for r in rows if r.workload.startswith("cloth")]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, marker in zip(("jaxspring", "jax_segment_sum", "numpy", "warp"), "osD^"):
+        mine = sorted((r for r in cloths if r.implementation == name), key=lambda r: r.springs)
+        if mine:
+            ax.loglog([r.springs for r in mine], [r.ns_per_spring_step for r in mine], marker=marker, label=name)
+    ax.set_xlabel("springs")
+    ax.set_ylabel("ns per spring-step (lower is better)")
+    ax.set_title("cloth, float32, single rollout, this machine")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(Path(path)) as temporary:
+        fig.savefig(temporary, format="png", dpi=110)
+    plt.close(fig)
