@@ -37,3 +37,22 @@ def test_bench_accuracy_quick(tmp_path, capsys):
     assert np.isclose(error[("semi_implicit_euler", 0.01)] / error[("semi_implicit_euler", 0.005)], 2, rtol=0.1)
     assert np.isclose(error[("verlet", 0.01)] / error[("verlet", 0.005)], 4, rtol=0.1)
     assert main(["bench", "accuracy", "--scenes", "nope"]) == 2
+
+
+def test_bench_speed_quick(tmp_path, capsys):
+    out = tmp_path / "speed"
+    args = ["bench", "speed", "--quick", "--peers", "jax_segment_sum,numpy", "--repeats", "1", "--out-dir", str(out)]
+    assert main(args) == 0
+    with open(out / "speed.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert {r["implementation"] for r in rows} == {"jaxspring", "jax_segment_sum", "numpy"}
+    assert {r["workload"] for r in rows} == {"chain", "cloth_31x41"}
+    for r in rows:
+        assert float(r["steps_per_second"]) > 0
+        if r["implementation"] != "jaxspring":  # every peer computes the same motion
+            assert float(r["max_difference"]) < 1e-3
+        else:
+            assert float(r["gradient_ratio"]) > 1 and float(r["memory_gradient_mib"]) > 0
+    assert (out / "speed.png").stat().st_size > 10_000
+    assert "x jax_segment_sum" in (out / "speed.md").read_text()
+    assert main(["bench", "speed", "--peers", "cuda"]) == 2
