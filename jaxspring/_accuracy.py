@@ -170,8 +170,14 @@ def markdown(rows, tolerance: float = 1e-3) -> str:
             f"| {r.scene} | {r.integrator} | {r.dt:.3g} | {r.seconds_per_simulated_second:.3g} | "
             f"{r.error:.2e} | {r.energy_error:.2e} | {'yes' if r.stable else 'no'} |"
         )
-    lines += ["", f"Recommended: the cheapest stable setting with error below {tolerance:g} m (or the tolerance shown):", ""]
-    lines += ["| scene | integrator | dt [s] | wall s / simulated s | error [m] | tolerance [m] | reference change on halving [m] |"]
+    lines += [
+        "",
+        f"Recommended: the cheapest stable setting with error below {tolerance:g} m (or the tolerance shown):",
+        "",
+    ]
+    lines += [
+        "| scene | integrator | dt [s] | wall s / simulated s | error [m] | tolerance [m] | reference change on halving [m] |"
+    ]
     lines += ["|---|---|---|---|---|---|---|"]
     refs = {r.scene: r.reference_change for r in rows}
     for scene, (r, limit) in recommend(rows, tolerance).items():
