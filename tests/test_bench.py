@@ -27,7 +27,7 @@ def test_bench_accuracy_quick(tmp_path, capsys):
     with open(out / "accuracy.csv") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == 4 * 4  # integrators x dt values
-    assert (out / "accuracy.png").stat().st_size > 10_000 and "Cheapest" in (out / "accuracy.md").read_text()
+    assert (out / "accuracy.png").stat().st_size > 10_000 and "Recommended" in (out / "accuracy.md").read_text()
     error = {(r["integrator"], float(r["dt"])): float(r["error"]) for r in rows}
     change = float(rows[0]["reference_change"])
     assert change < 1e-3 * min(error.values())  # the reference is converged far below every reported error
