@@ -244,7 +244,6 @@ def _bench_speed(args):
     from . import _peers, _speed
     from ._errors import InputError
 
-    jax.config.update("jax_enable_x64", False)  # speed is measured in float32
     peers = [p.strip() for p in args.peers.split(",") if p.strip()]
     for peer in peers:
         if peer not in ("jax_segment_sum", "numpy", "warp"):
@@ -263,7 +262,12 @@ def _bench_speed(args):
                 flush=True,
             )
 
-    rows = _speed.sweep(quick=args.quick, repeats=args.repeats, peers=peers, progress=progress)
+    x64 = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", False)  # speed is measured in float32
+    try:
+        rows = _speed.sweep(quick=args.quick, repeats=args.repeats, peers=peers, progress=progress)
+    finally:
+        jax.config.update("jax_enable_x64", x64)
     _speed.write_csv(rows, out / "speed.csv")
     table = _speed.markdown(rows) + f"\nPeak process memory: {_speed.peak_rss_mib():.0f} MiB.\n"
     (out / "speed.md").write_text(table)

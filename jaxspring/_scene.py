@@ -105,8 +105,14 @@ def resolve_scene_path(path_or_name) -> Path:
     raise InputError(
         "scene",
         f"file {str(path_or_name)!r} not found",
-        f"give a path to a scene TOML file or a built-in name ({', '.join(builtin_scenes())})",
+        f"give a path to a scene TOML file or a built-in name ({', '.join(builtin_scenes())}, "
+        f"or a hard case: {', '.join(hard_scenes())})",
     )
+
+
+def hard_scenes() -> list[str]:
+    """Names of the hard cases shipped with jaxspring, e.g. "hard/stiff_cloth"."""
+    return sorted(f"hard/{p.stem}" for p in (builtin_scene_dir() / "hard").glob("*.toml"))
 
 
 def load_scene(path_or_name) -> Scene:

@@ -56,3 +56,6 @@ def test_bench_speed_quick(tmp_path, capsys):
     assert (out / "speed.png").stat().st_size > 10_000
     assert "x jax_segment_sum" in (out / "speed.md").read_text()
     assert main(["bench", "speed", "--peers", "cuda"]) == 2
+    import jax
+
+    assert jax.config.jax_enable_x64  # the float32 benchmark restored the suite's float64
