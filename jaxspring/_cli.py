@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--integrator", help="time integrator (default: the scene's)")
     run.add_argument("--dt", type=float, help="time step [s] (default: the scene's)")
+    run.add_argument("--backend", choices=["jax", "native"], help="spring force: pure JAX or the C++ kernel")
     _add_common(run)
 
     check = sub.add_parser(
@@ -149,6 +150,8 @@ def _prepare_scene(args):
         scene = scene.with_integrator(args.integrator)
     if getattr(args, "dt", None) is not None:
         scene = scene.with_dt(args.dt)
+    if getattr(args, "backend", None):
+        scene = scene.with_backend(args.backend)
     overrides = _parse_sets(args.set)
     if overrides:
         scene = scene.with_params(**overrides)
@@ -254,7 +257,7 @@ def _bench_speed(args):
 
     def progress(row):
         if not args.quiet:
-            extra = "" if row.implementation != "jaxspring" else f"  grad/fwd {row.gradient_ratio:.2f}"
+            extra = f"  grad/fwd {row.gradient_ratio:.2f}" if row.implementation.startswith("jaxspring") else ""
             print(
                 f"{row.workload:14s} {row.implementation:16s} {row.steps_per_second:12,.1f} steps/s"
                 f"  {row.ns_per_spring_step:8.2f} ns/spring-step{extra}",

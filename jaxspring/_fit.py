@@ -532,7 +532,7 @@ def _residual_function(scene: Scene, observations: Observations, names, values: 
     """(flat log parameters, unravel, residuals(flat) -> (n,)) for the full horizon."""
     theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
     flat, unravel = ravel_pytree(theta)
-    base, model = scene.params, scene.model
+    base, model = scene.params, scene.model.forward_mode()  # Jacobians are taken with jacfwd
     particles = jnp.asarray(observations.particles)
     every, frames = observations.save_every, observations.frame_count - 1
     target = jnp.asarray(observations.x)

@@ -183,7 +183,9 @@ def step(model, params, state: State) -> State:
     same code serves both. (`model.step` takes and returns the (N, 3) layout.)
     """
     integrator = INTEGRATORS[model.integrator].step
-    if model.lattice is not None:
+    if not INTEGRATORS[model.integrator].explicit:  # Newton needs forward mode
+        model = model.forward_mode()
+    if model.grid:
         force = lambda x, v: model.grid_force(params, x, v)  # noqa: E731
         mass, free = model.to_grid(model.mass), model.to_grid(~model.pinned)
     else:

@@ -33,6 +33,8 @@ class Model:
         lattice: (shape, offsets) when the springs are whole lattice neighbour families
             in `lattice_springs` order (static); the spring force then runs as array
             shifts instead of scatters (same numbers, see `Springs`). None otherwise.
+        backend: "jax" (default) or "native": the spring force by the C++ kernel
+            (`jaxspring/_native.py`; reverse mode and vmap, not forward mode), static.
 
     Build one with `make_model`; a loaded scene carries one as `scene.model`.
     """
@@ -46,6 +48,7 @@ class Model:
     integrator: str = dataclasses.field(metadata=dict(static=True), default="semi_implicit_euler")
     dt: float = dataclasses.field(metadata=dict(static=True), default=1e-3)
     lattice: tuple | None = dataclasses.field(metadata=dict(static=True), default=None)
+    backend: str = dataclasses.field(metadata=dict(static=True), default="jax")
 
     @property
     def particle_count(self) -> int:
@@ -58,9 +61,21 @@ class Model:
     def has(self, term: str) -> bool:
         return term in self.terms
 
+    @property
+    def grid(self) -> bool:
+        """Whether steps run in grid layout (a lattice on the pure-JAX backend)."""
+        return self.lattice is not None and self.backend == "jax"
+
+    def forward_mode(self) -> Model:
+        """This model on the pure-JAX backend, for jvp/jacfwd (the native kernel is reverse-mode only).
+
+        It keeps the native model's (N, 3) layout (generic path), so states pass between them.
+        """
+        return self if self.backend == "jax" else self.replace(backend="jax", lattice=None)
+
     def force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
         """Total force on every particle [N], shape (N, 3)."""
-        if self.lattice is not None:
+        if self.grid:
             return self.from_grid(self.grid_force(params, self.to_grid(x), self.to_grid(v)))
         total = jnp.zeros_like(x)
         for name in self.terms:
@@ -94,18 +109,18 @@ class Model:
 
     def to_internal(self, state: State) -> State:
         """The state in the layout the step works in (grid layout for lattices)."""
-        if self.lattice is None:
+        if not self.grid:
             return state
         return State(x=self.to_grid(state.x), v=self.to_grid(state.v))
 
     def from_internal(self, state: State) -> State:
-        if self.lattice is None:
+        if not self.grid:
             return state
         return State(x=self.from_grid(state.x), v=self.from_grid(state.v))
 
     def positions_from_internal(self, x: jax.Array) -> jax.Array:
         """Internal-layout positions with leading axes (..., layout) -> (..., N, 3)."""
-        if self.lattice is None:
+        if not self.grid:
             return x
         lead = x.shape[: x.ndim - 1 - len(self.lattice[0])]
         return jnp.moveaxis(x.reshape(lead + (3, -1)), -2, -1)
@@ -144,6 +159,7 @@ def make_model(
     integrator: str = "semi_implicit_euler",
     dt: float = 1e-3,
     lattice_shape=None,
+    backend: str = "jax",
 ) -> Model:
     """Build and validate a Model.
 
@@ -224,7 +240,24 @@ def make_model(
         integrator=integrator,
         dt=float(dt),
         lattice=lattice_layout(springs_np, lattice_shape, count),
+        backend=check_backend(backend),
     )
+
+
+BACKENDS = ("jax", "native")
+
+
+def check_backend(name: str) -> str:
+    """Validate a backend name; "native" without the built kernel falls back to "jax" with a notice."""
+    if name not in BACKENDS:
+        raise InputError("backend", f"unknown backend {name!r}", f"use one of {', '.join(BACKENDS)}")
+    if name == "native":
+        from . import _native
+
+        if not _native.available():
+            _native.notice_unavailable()
+            return "jax"
+    return name
 
 
 def lattice_layout(springs: np.ndarray, shape, count: int):

@@ -65,6 +65,12 @@ class Scene:
             raise InputError("integrator", f"unknown integrator {name!r}", f"use one of {', '.join(INTEGRATORS)}")
         return dataclasses.replace(self, model=self.model.replace(integrator=name))
 
+    def with_backend(self, name: str) -> Scene:
+        """A copy whose spring force runs on `name`: "jax" or "native" (the C++ kernel, if built)."""
+        from ._model import check_backend
+
+        return dataclasses.replace(self, model=self.model.replace(backend=check_backend(name)))
+
     def with_dt(self, dt: float) -> Scene:
         """A copy that steps with another dt [s]."""
         dt = float(dt)
@@ -145,6 +151,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     description = top.take("description", _string, default="")
     dt = top.take("dt", _positive, required=True)
     integrator = top.take("integrator", _string, default="semi_implicit_euler")
+    backend = top.take("backend", _string, default="jax")
     steps = top.take("steps", _count, default=1000)
     save_every = top.take("save_every", _count, default=10)
     if save_every < 1 or steps % save_every:
@@ -217,11 +224,12 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
             integrator=integrator,
             dt=dt,
             lattice_shape=lattice_shape,
+            backend=backend,
         )
     except InputError as exc:  # name the table the bad value came from
         table = "lattice" if lattice is not None else "particles"
         prefix = {"springs": "springs", "rest_length": "springs"}.get(exc.field, table)
-        raise exc.within("", "" if exc.field in ("dt", "integrator") else prefix) from None
+        raise exc.within("", "" if exc.field in ("dt", "integrator", "backend") else prefix) from None
     values = dict(ks=ks, kd=kd, cd=cd, gravity=gravity if gravity_on else None)
     values.update(ground_values or {})
     params = check_params(model, Params(**{k: _array(v) for k, v in values.items() if v is not None}))

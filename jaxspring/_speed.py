@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _peers
+from . import _native, _peers
 from ._rollout import _simulate
 from ._scene import Scene, load_scene, scene_from_dict
 
@@ -86,14 +86,16 @@ def _steps_for(springs: int) -> int:
 
 
 def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: int, batch: bool) -> SpeedRow:
+    """jaxspring itself: "jaxspring" on the pure-JAX backend, "jaxspring_native" on the C++ kernel."""
     m, p, s = scene.model, scene.params, scene.state
     start = time.perf_counter()
     forward = _simulate.lower(m, p, s, 1, steps).compile()
     compile_forward = time.perf_counter() - start
     jax.block_until_ready(forward(m, p, s))
     wall = _median_time(lambda: jax.block_until_ready(forward(m, p, s)), repeats)
+    label = "jaxspring_native" if m.backend == "native" else "jaxspring"
     row = SpeedRow(
-        scene.name, "jaxspring", m.particle_count, m.spring_count, steps / wall, wall / steps / m.spring_count * 1e9
+        scene.name, label, m.particle_count, m.spring_count, steps / wall, wall / steps / m.spring_count * 1e9
     )
     row.compile_forward_s, row.memory_forward_mib = compile_forward, _memory_mib(forward)
 
@@ -171,10 +173,12 @@ def sweep(quick: bool = False, repeats: int = 5, peers=("jax_segment_sum", "nump
         steps = 200 if quick else _steps_for(springs)
         big = scene.model.particle_count > 20_000
         gradient_steps = 200 if (quick or big) else 2000
-        row = measure_jaxspring(scene, steps, repeats, gradient_steps, batch=not big)
-        rows.append(row)
-        if progress:
-            progress(row)
+        variants = [scene] + ([scene.with_backend("native")] if _native.available() else [])
+        for variant in variants:
+            row = measure_jaxspring(variant, steps, repeats, gradient_steps, batch=not big)
+            rows.append(row)
+            if progress:
+                progress(row)
         has_ground = scene.model.has("ground")
         for peer in peers:
             if has_ground or (peer == "warp" and not _peers.warp_available()):
@@ -205,11 +209,11 @@ def write_csv(rows, path):
 def markdown(rows) -> str:
     by = {(r.workload, r.implementation): r for r in rows}
     peers = [p for p in ("jax_segment_sum", "numpy", "warp") if any(r.implementation == p for r in rows)]
-    header = "| workload | particles | springs | jaxspring steps/s | " + " | ".join(f"x {p}" for p in peers)
+    header = "| workload | backend | particles | springs | steps/s | " + " | ".join(f"x {p}" for p in peers)
     header += " | grad / fwd | compile fwd / grad [s] | memory fwd / grad [MiB] | batch 64 / single |"
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
-        if r.implementation != "jaxspring":
+        if not r.implementation.startswith("jaxspring"):
             continue
         ratios = []
         for p in peers:
@@ -218,7 +222,8 @@ def markdown(rows) -> str:
         batch = "—" if np.isnan(r.batch_ratio) else f"{r.batch_ratio:.2f}"
         grad = f"{r.gradient_ratio:.2f}" + (" (ckpt)" if r.gradient_mode != "plain" else "")
         lines.append(
-            f"| {r.workload} | {r.particles} | {r.springs} | {r.steps_per_second:,.0f} | {' | '.join(ratios)} | "
+            f"| {r.workload} | {'native' if r.implementation.endswith('native') else 'jax'} | {r.particles} | "
+            f"{r.springs} | {r.steps_per_second:,.0f} | {' | '.join(ratios)} | "
             f"{grad} | {r.compile_forward_s:.2f} / {r.compile_gradient_s:.2f} | "
             f"{r.memory_forward_mib:.1f} / {r.memory_gradient_mib:.1f} | {batch} |"
         )
@@ -228,7 +233,7 @@ def markdown(rows) -> str:
         "|---|---|---|---|---|",
     ]
     for r in rows:
-        if r.implementation != "jaxspring":
+        if not r.implementation.startswith("jaxspring"):
             lines.append(
                 f"| {r.workload} | {r.implementation} | {r.steps_per_second:,.1f} | {r.ns_per_spring_step:.2f} | "
                 f"{r.max_difference:.1e} |"
@@ -247,7 +252,7 @@ def plot(rows, path):
 
     cloths = [r for r in rows if r.workload.startswith("cloth")]
     fig, ax = plt.subplots(figsize=(6, 4))
-    for name, marker in zip(("jaxspring", "jax_segment_sum", "numpy", "warp"), "osD^"):
+    for name, marker in zip(("jaxspring", "jaxspring_native", "jax_segment_sum", "numpy", "warp"), "ovsD^"):
         mine = sorted((r for r in cloths if r.implementation == name), key=lambda r: r.springs)
         if mine:
             ax.loglog([r.springs for r in mine], [r.ns_per_spring_step for r in mine], marker=marker, label=name)

@@ -81,7 +81,7 @@ def estimate_stability(model: Model, params: Params, state: State, iterations: i
     Example:
         >>> js.estimate_stability(scene.model, scene.params, scene.state).dt_bound
     """
-    omega_sq, damping = _power_iterations(model, params, state, iterations)
+    omega_sq, damping = _power_iterations(model.forward_mode(), params, state, iterations)
     omega_sq, damping = float(omega_sq), float(damping)
     if model.has("ground"):
         scale = 1.0 / np.asarray(model.mass)

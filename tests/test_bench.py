@@ -45,11 +45,11 @@ def test_bench_speed_quick(tmp_path, capsys):
     assert main(args) == 0
     with open(out / "speed.csv") as handle:
         rows = list(csv.DictReader(handle))
-    assert {r["implementation"] for r in rows} == {"jaxspring", "jax_segment_sum", "numpy"}
+    assert {r["implementation"] for r in rows} >= {"jaxspring", "jax_segment_sum", "numpy"}
     assert {r["workload"] for r in rows} == {"chain", "cloth_31x41"}
     for r in rows:
         assert float(r["steps_per_second"]) > 0
-        if r["implementation"] != "jaxspring":  # every peer computes the same motion
+        if not r["implementation"].startswith("jaxspring"):  # every peer computes the same motion
             assert float(r["max_difference"]) < 1e-3
         else:
             assert float(r["gradient_ratio"]) > 1 and float(r["memory_gradient_mib"]) > 0

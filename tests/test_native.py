@@ -1,0 +1,122 @@
+"""The native C++ spring kernel (jax.ffi) against the pure-JAX path: values, gradients, batches, fallback."""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxspring as js
+from jaxspring import _native
+
+if not _native.available():
+    if os.environ.get("CI"):
+        raise AssertionError("the native kernel was not built by the install")  # CI must exercise it
+    pytest.skip("native kernel not built here", allow_module_level=True)
+
+SCENES = ["mass_spring", "chain", "jelly", "cloth"]
+
+
+def random_topology(seed=0, count=30, springs=80):
+    rng = np.random.default_rng(seed)
+    pairs = set()
+    while len(pairs) < springs:
+        a, b = rng.integers(0, count, 2)
+        if a != b:
+            pairs.add((min(a, b), max(a, b)))
+    positions = rng.normal(size=(count, 3))
+    pairs = np.array(sorted(pairs))
+    rest = rng.uniform(0.0, 2.0, len(pairs))
+    rest[:5] = 0.0  # zero-length springs too
+    model = js.make_model(pairs, rng.uniform(0.5, 2.0, count), rest_length=rest, pinned=[0, 1], drag=True, dt=1e-3)
+    params = js.Params(ks=jnp.asarray(rng.uniform(50, 150, len(pairs))), kd=0.3, cd=0.02, gravity=[0.0, -9.81, 0.0])
+    state = js.State(x=jnp.asarray(positions), v=jnp.asarray(rng.normal(size=(count, 3)) * 0.1).at[:2].set(0.0))
+    return model, params, state
+
+
+def cases(scenes):
+    for name in SCENES:
+        s = scenes[name]
+        yield name, s.model, s.params, s.state
+    yield ("random",) + random_topology()
+
+
+def relative(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300))
+
+
+def test_forces_and_their_vjp_match(scenes):
+    for name, model, params, state in cases(scenes):
+        native = model.replace(backend="native")
+        key = jax.random.PRNGKey(1)
+        x = state.x + 0.05 * jax.random.normal(key, state.x.shape)
+        v = jax.random.normal(jax.random.PRNGKey(2), state.x.shape)
+        plain = model.replace(lattice=None)
+        assert relative(native.force(params, x, v), plain.force(params, x, v)) < 1e-12, name
+        ct = jax.random.normal(jax.random.PRNGKey(3), x.shape)
+        for a, b in zip(
+            jax.vjp(lambda x, v, p, m=native: m.force(p, x, v), x, v, params)[1](ct),
+            jax.vjp(lambda x, v, p, m=plain: m.force(p, x, v), x, v, params)[1](ct),
+        ):
+            for la, lb in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+                assert relative(la, lb) < 1e-12, name
+
+
+def test_rollouts_and_gradients_match(scenes):
+    for name, model, params, state in cases(scenes):
+        native = model.replace(backend="native")
+        target = js.rollout(model, params.replace(ks=params.ks * 1.2), state, 60, 20).x
+
+        def loss(p, s, m, target=target):
+            return jnp.mean((js.rollout(m, p, s, 60, 20).x - target) ** 2)
+
+        assert relative(js.rollout(native, params, state, 60, 20).x, js.rollout(model, params, state, 60, 20).x) < 1e-12
+        g_native = jax.grad(loss, argnums=(0, 1))(params, state, native)
+        g_plain = jax.grad(loss, argnums=(0, 1))(params, state, model)
+        leaves = list(zip(jax.tree_util.tree_leaves(g_native), jax.tree_util.tree_leaves(g_plain)))
+        scale = max(float(np.max(np.abs(np.asarray(b)))) for _, b in leaves)
+        for a, b in leaves:  # to 1e-11 of the largest gradient component (max-norm; round-off of reordered sums)
+            assert float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) <= 1e-11 * scale, name
+
+
+def test_vmap_and_forward_mode_fallbacks(scenes):
+    scene = scenes["chain"].with_backend("native")
+    assert scene.model.backend == "native"
+    ks = jnp.array([500.0, 1000.0, 2000.0])
+    run = lambda k: js.rollout(scene.model, scene.params.replace(ks=k), scene.state, 40, 20).x  # noqa: E731
+    batched = jax.vmap(run)(ks)
+    for i in range(3):
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(run(ks[i])), rtol=1e-12, atol=1e-12)
+    # jaxspring's own forward-mode users switch to the pure-JAX force
+    assert js.estimate_stability(scene.model, scene.params, scene.state).omega_max > 60
+    implicit = scene.with_integrator("backward_euler")
+    x = js.rollout(implicit.model, implicit.params, implicit.state, 20, 20).x
+    y = js.rollout(implicit.model.replace(backend="jax"), implicit.params, implicit.state, 20, 20).x
+    assert relative(x, y) < 1e-12
+
+
+def test_fit_with_the_native_backend(scenes):
+    chain = scenes["chain"]
+    obs = js.synthetic_observations(chain, {"ks": 1000.0, "kd": 5.0}, 200, 20)
+    init = {"ks": 600.0, "kd": 9.0}
+    native = js.fit(chain.with_backend("native"), obs, ["ks", "kd"], init, iterations=30)
+    plain = js.fit(chain, obs, ["ks", "kd"], init, iterations=30)
+    for n in ("ks", "kd"):
+        assert abs(float(native.final[n]) - float(plain.final[n])) <= 1e-6 * float(plain.final[n])
+    assert max(native.relative_errors().values()) < 1e-6
+
+
+def test_missing_kernel_falls_back_with_one_notice(monkeypatch, capsys):
+    monkeypatch.setattr(_native, "library_path", lambda: None)
+    monkeypatch.setattr(_native, "_NOTICED", [])
+    _native.available.cache_clear()
+    try:
+        scene = js.load_scene("chain")
+        assert scene.with_backend("native").model.backend == "jax"
+        assert scene.with_backend("native").model.backend == "jax"
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "native kernel is not built" in err[0]
+    finally:
+        _native.available.cache_clear()  # found again once the patch is undone
