@@ -46,7 +46,8 @@ inline Geometry<T> geometry(const T* x, const T* v, int64_t a, int64_t b, T rest
 constexpr int64_t kSpringsPerThread = 50000;
 
 inline int thread_count(int64_t springs) {
-  const int64_t hardware = std::max(1u, std::thread::hardware_concurrency());
+  if (springs < 2 * kSpringsPerThread) return 1;
+  static const int64_t hardware = std::max(1u, std::thread::hardware_concurrency());  // a system call: once
   return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(hardware, springs / kSpringsPerThread)));
 }
 
