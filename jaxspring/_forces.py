@@ -18,20 +18,20 @@ import numpy as np
 Y_AXIS = 1
 
 
-def safe_norm(d: jax.Array, keepdims: bool = False) -> jax.Array:
-    """Euclidean norm over the last axis with a finite gradient at zero.
+def safe_norm(d: jax.Array, keepdims: bool = False, axis: int = -1) -> jax.Array:
+    """Euclidean norm over `axis` (default the last) with a finite gradient at zero.
 
     `jnp.linalg.norm` has a NaN gradient at 0; here the gradient at 0 is 0.
 
     Args:
-        d: vectors, shape (..., 3).
+        d: vectors, shape (..., 3) (or components along `axis`).
     Returns:
         |d|, shape (...) or (..., 1) with `keepdims`.
 
     Example:
         >>> jax.grad(lambda d: safe_norm(d))(jnp.zeros(3))  # -> [0, 0, 0]
     """
-    squared = jnp.sum(d * d, axis=-1, keepdims=keepdims)
+    squared = jnp.sum(d * d, axis=axis, keepdims=keepdims)
     positive = squared > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
 
@@ -43,9 +43,7 @@ def safe_direction(d: jax.Array, length: jax.Array) -> jax.Array:
 
 def _grid_norm(d: jax.Array) -> jax.Array:
     """safe_norm over the component axis 0 of a grid-layout array (3, *shape), keeping it."""
-    squared = jnp.sum(d * d, axis=0, keepdims=True)
-    positive = squared > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+    return safe_norm(d, keepdims=True, axis=0)
 
 
 def per_item(value: jax.Array) -> jax.Array:
