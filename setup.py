@@ -19,7 +19,14 @@ def native_extensions():
             "jaxspring._native_springs",
             sources=["jaxspring/native/springs.cc"],
             include_dirs=[include],
-            extra_compile_args=["-std=c++17", "-O3", "-march=native", "-pthread", "-Wno-attributes", "-Wno-return-type"],
+            extra_compile_args=[
+                "-std=c++17",
+                "-O3",
+                "-march=native",  # built where it runs (pip builds it on install)
+                "-pthread",
+                "-Wno-attributes",
+                "-Wno-return-type",
+            ],
             extra_link_args=["-pthread"],
             language="c++",
             optional=True,
