@@ -41,11 +41,12 @@ def test_explicit_integrators_blow_up_where_predicted(request, case, integrator)
     _, _, problem = run(scene, integrator, 400, 10)
     assert problem is not None and 0 < problem.step <= 400
     # and the prediction is sharp: 20% below the bound runs clean, 20% above blows up
-    assert run(scene, integrator, 2000, 10, dt=0.8 * bound)[2] is None
-    assert run(scene, integrator, 2000, 10, dt=1.2 * bound)[2] is not None
+    # (within tens of steps, so 1,000 steps tell them apart)
+    assert run(scene, integrator, 1000, 10, dt=0.8 * bound)[2] is None
+    assert run(scene, integrator, 1000, 10, dt=1.2 * bound)[2] is not None
 
 
-@pytest.mark.parametrize("case, steps", [("stiff_cloth", 60), ("damped_chain", 400)])
+@pytest.mark.parametrize("case, steps", [("stiff_cloth", 40), ("damped_chain", 400)])
 def test_backward_euler_stays_bounded(request, case, steps):
     scene = request.getfixturevalue(case)
     model, traj, problem = run(scene, "backward_euler", steps, steps // 4)
