@@ -175,6 +175,7 @@ def make_model(
         dt: time step [s].
         lattice_shape: the particles' lattice shape when they form one (C order); if
             the springs are whole neighbour families of it, the structured fast path is used.
+        backend: "jax" or "native" (the C++ spring kernel; "jax" with a notice if not built).
 
     Example:
         >>> model = make_model([[0, 1]], mass=[1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]],
