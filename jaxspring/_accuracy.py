@@ -16,12 +16,13 @@ import csv
 import dataclasses
 import math
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
 
+from ._files import write_rows_csv
 from ._integrators import INTEGRATORS
+from ._render import pyplot, save_figure
 from ._rollout import _simulate, energy
 from ._scene import Scene, load_scene
 from ._stability import energy_threshold
@@ -116,14 +117,7 @@ def sweep(names=None, quick: bool = False, repeats: int = 3, progress=None) -> l
 
 
 def write_csv(rows, path):
-    from ._files import atomic_path
-
-    path = Path(path)
-    with atomic_path(path) as temporary, open(temporary, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow([f.name for f in dataclasses.fields(AccuracyRow)])
-        for row in rows:
-            writer.writerow(dataclasses.astuple(row))
+    write_rows_csv(rows, path)
 
 
 def read_csv(path) -> list[AccuracyRow]:
@@ -190,13 +184,7 @@ def markdown(rows, tolerance: float = 1e-3) -> str:
 
 def plot(rows, path):
     """Log-log error against wall time per simulated second, one panel per scene (the Pareto fronts)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ._files import atomic_path
-
+    plt = pyplot()
     scenes = list(dict.fromkeys(r.scene for r in rows))
     fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.8), squeeze=False)
     markers = dict(zip(INTEGRATORS, "osD^"))
@@ -219,7 +207,5 @@ def plot(rows, path):
     axes[0][0].set_ylabel("max RMS position error [m]")
     axes[0][-1].legend(fontsize=7)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as temporary:
-        fig.savefig(temporary, format=path.suffix.lstrip(".") or "png", dpi=110)
-    plt.close(fig)
+    fig.set_dpi(110)
+    save_figure(fig, path)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import csv
+import dataclasses
 import os
 import tempfile
 from pathlib import Path
@@ -19,6 +21,16 @@ from ._state import State, Trajectory
 
 TRAJECTORY_FORMAT = "jaxspring.trajectory"
 FORMAT_VERSION = 1
+
+
+def write_rows_csv(rows, path):
+    """Write dataclass rows as CSV (header: the field names), atomically."""
+    rows = list(rows)
+    with atomic_path(Path(path)) as tmp, open(tmp, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        if rows:
+            writer.writerow([f.name for f in dataclasses.fields(rows[0])])
+        writer.writerows(dataclasses.astuple(row) for row in rows)
 
 
 @contextlib.contextmanager

@@ -15,6 +15,25 @@ from ._state import Trajectory
 _TO_PLOT = (0, 2, 1)
 
 
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (files only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, out) -> Path:
+    """Save `fig` to `out` atomically (format from the suffix) and close it."""
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format=out.suffix.lstrip(".") or "png", dpi=fig.dpi)
+    pyplot().close(fig)
+    return out
+
+
 def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frames: int = 60, progress=None) -> Path:
     """Draw one frame to a PNG or the whole trajectory to a GIF, written atomically.
 
@@ -31,11 +50,9 @@ def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frame
         >>> scene, traj = js.load_trajectory("cloth.h5")
         >>> js.render(scene, traj, "cloth.png")
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib import animation
+
+    plt = pyplot()
 
     out = Path(out)
     suffix = out.suffix.lower()
@@ -109,10 +126,7 @@ def plot_fit(result, out) -> Path:
     Example:
         >>> js.plot_fit(result, "chain.fit.png")
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out = Path(out)
     names = result.names
@@ -133,7 +147,4 @@ def plot_fit(result, out) -> Path:
             ax.axvline(c, color="0.7", linewidth=0.8)
     fig.suptitle("fit: " + " -> ".join(f"{s.kind}({s.frames})" for s in result.stages), fontsize=9)
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out)

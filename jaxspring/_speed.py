@@ -8,17 +8,17 @@ peak the program needs; the process's peak RSS is reported once at the end.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import resource
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _native, _peers
+from ._files import write_rows_csv
+from ._render import pyplot, save_figure
 from ._rollout import _simulate
 from ._scene import Scene, load_scene, scene_from_dict
 
@@ -197,13 +197,7 @@ def peak_rss_mib() -> float:
 
 
 def write_csv(rows, path):
-    from ._files import atomic_path
-
-    with atomic_path(Path(path)) as temporary, open(temporary, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow([f.name for f in dataclasses.fields(SpeedRow)])
-        for row in rows:
-            writer.writerow(dataclasses.astuple(row))
+    write_rows_csv(rows, path)
 
 
 def markdown(rows) -> str:
@@ -243,13 +237,7 @@ def markdown(rows) -> str:
 
 def plot(rows, path):
     """Cost per spring-step against size for the cloth lattices, per implementation."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ._files import atomic_path
-
+    plt = pyplot()
     cloths = [r for r in rows if r.workload.startswith("cloth")]
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, marker in zip(("jaxspring", "jaxspring_native", "jax_segment_sum", "numpy", "warp"), "ovsD^"):
@@ -262,6 +250,5 @@ def plot(rows, path):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    with atomic_path(Path(path)) as temporary:
-        fig.savefig(temporary, format="png", dpi=110)
-    plt.close(fig)
+    fig.set_dpi(110)
+    save_figure(fig, path)

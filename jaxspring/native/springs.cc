@@ -42,6 +42,14 @@ inline Geometry<T> geometry(const T* x, const T* v, int64_t a, int64_t b, T rest
   return g;
 }
 
+// The i-th spring of [first, last) in processing order: the even ones, then the odd
+// ones. In a chain or lattice neighbouring springs share a particle; alternating keeps
+// consecutive force updates independent.
+inline int64_t spring_at(int64_t i, int64_t first, int64_t last) {
+  const int64_t half = (last - first + 1) / 2;
+  return first + (i < half ? 2 * i : 2 * (i - half) + 1);
+}
+
 // Springs per thread below which one thread is faster than starting a second one.
 constexpr int64_t kSpringsPerThread = 50000;
 
@@ -87,11 +95,8 @@ ffi::Error Forward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> p
   std::fill(out, out + n, T(0));
   parallel_springs(springs, [&](int64_t first, int64_t last, int slot) {
     T* f = slot == 0 ? out : extra[slot - 1].data();
-    // even springs, then odd ones: in a chain or lattice neighbouring springs share a
-    // particle, and alternating keeps consecutive updates independent (no store-to-load stall)
     for (int64_t i = 0; i < last - first; ++i) {
-      const int64_t half = (last - first + 1) / 2;
-      const int64_t s = first + (i < half ? 2 * i : 2 * (i - half) + 1);
+      const int64_t s = spring_at(i, first, last);
       const int64_t a = p[2 * s], b = p[2 * s + 1];
       Geometry<T> g = geometry(xs, vs, a, b, r[s], k_s[ks_each ? s : 0], k_d[kd_each ? s : 0]);
       for (int k = 0; k < 3; ++k) {
@@ -134,9 +139,8 @@ ffi::Error Backward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> 
   parallel_springs(springs, [&](int64_t first, int64_t last, int slot) {
     T* gx = slot == 0 ? out_x : extra_x[slot - 1].data();
     T* gv = slot == 0 ? out_v : extra_v[slot - 1].data();
-    for (int64_t i = 0; i < last - first; ++i) {  // even springs, then odd ones (see Forward)
-      const int64_t half = (last - first + 1) / 2;
-      const int64_t s = first + (i < half ? 2 * i : 2 * (i - half) + 1);
+    for (int64_t i = 0; i < last - first; ++i) {
+      const int64_t s = spring_at(i, first, last);
       const int64_t a = p[2 * s], b = p[2 * s + 1];
       const T spring_ks = k_s[ks_each ? s : 0], spring_kd = k_d[kd_each ? s : 0];
       Geometry<T> g = geometry(xs, vs, a, b, r[s], spring_ks, spring_kd);
