@@ -62,16 +62,23 @@ class Model:
         return term in self.terms
 
     @property
+    def native_lattice(self) -> bool:
+        """Whether whole steps run in the native lattice kernel (lattice, semi-implicit Euler, "native")."""
+        return self.backend == "native" and self.lattice is not None and self.integrator == "semi_implicit_euler"
+
+    @property
     def grid(self) -> bool:
-        """Whether steps run in grid layout (a lattice on the pure-JAX backend)."""
-        return self.lattice is not None and self.backend == "jax"
+        """Whether steps run in grid layout (a lattice on the pure-JAX backend or the native lattice kernel)."""
+        return self.lattice is not None and (self.backend == "jax" or self.native_lattice)
 
     def forward_mode(self) -> Model:
-        """This model on the pure-JAX backend, for jvp/jacfwd (the native kernel is reverse-mode only).
+        """This model on the pure-JAX backend, for jvp/jacfwd (the native kernels are reverse-mode only).
 
-        It keeps the native model's (N, 3) layout (generic path), so states pass between them.
+        It keeps the native model's internal layout, so states pass between them.
         """
-        return self if self.backend == "jax" else self.replace(backend="jax", lattice=None)
+        if self.backend == "jax":
+            return self
+        return self.replace(backend="jax", lattice=self.lattice if self.grid else None)
 
     def force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
         """Total force on every particle [N], shape (N, 3)."""
@@ -137,7 +144,19 @@ class Model:
 
     def step_internal(self, params: Params, state: State) -> State:
         """One step on a state in the internal layout (see `to_internal`)."""
+        if self.native_lattice:
+            return self.advance(params, state, 1)
         return _integrate(self, params, state)
+
+    def advance(self, params: Params, state: State, steps: int) -> State:
+        """`steps` steps (static) on a state in the internal layout: one native call for
+        native lattice models, a `lax.scan` of `step_internal` otherwise."""
+        if self.native_lattice:
+            from ._native import lattice_advance
+
+            return State(*lattice_advance(self, params, state.x, state.v, steps))
+        step = lambda current, _: (self.step_internal(params, current), None)  # noqa: E731
+        return jax.lax.scan(step, state, None, length=steps)[0]
 
     def replace(self, **changes) -> Model:
         return dataclasses.replace(self, **changes)

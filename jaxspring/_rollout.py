@@ -81,11 +81,8 @@ def _frame_count(steps, save_every) -> int:
 def _simulate(model, params, state, frames, save_every):
     """(end state, x, v (frames, N, 3)); the scan runs in the model's internal layout."""
 
-    def one_step(current, _):
-        return model.step_internal(params, current), None
-
     def one_frame(current, _):
-        current, _ = jax.lax.scan(one_step, current, None, length=save_every)
+        current = model.advance(params, current, save_every)
         return current, (current.x, current.v)
 
     end, (x, v) = jax.lax.scan(one_frame, model.to_internal(state), None, length=frames)
@@ -114,6 +111,8 @@ def _simulate_checkpointed(model, params, state, frames, save_every, segment):
     step = jax.checkpoint(lambda current: model.step_internal(params, current))
 
     def run(current, length):
+        if model.native_lattice:  # one call; its reverse pass keeps one state per step of it
+            return model.advance(params, current, length)
         return jax.lax.scan(lambda c, _: (step(c), None), current, None, length=length)[0]
 
     if save_every >= segment:

@@ -1,0 +1,728 @@
+// Whole time steps of a lattice scene, and their exact reverse-mode derivative, as XLA
+// FFI custom calls (CPU): springs (neighbour families of a lattice), air drag, gravity
+// and the penalty ground, integrated by semi-implicit Euler, `steps` steps per call.
+//
+// Layout (jaxspring's grid layout): positions and velocities are (3, N), component
+// first, the N particles in C order of the lattice (up to 3 axes). The springs of a
+// family with lattice offset o join every particle a to a + shift(o); runs of them are
+// contiguous in particles and in spring index, so the inner loops read and write
+// unit-stride arrays and vectorise. Spring forces of a run go to a scratch row first
+// and are then added to a (+) and b (-) in two separate loops, which keeps those
+// loops free of the dependence a run with a small shift would otherwise carry.
+//
+// Per step, with F the total force (same formulas and summation order as
+// jaxspring/_forces.py): v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
+// The forward call can also return every step's starting state (the residuals of
+// the backward call, which then never re-runs the forward pass).
+//
+// Threads: a batch (vmap) is split over threads by members; one large lattice is
+// split by particle ranges, each thread adding its springs' forces into a private
+// buffer that the owner of the particles reduces (two barriers per step).
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+// The loops below touch each index once; this tells the compiler so (the arrays are
+// components of one buffer, which defeats its own alias analysis).
+#if defined(__clang__)
+#define JAXSPRING_INDEPENDENT _Pragma("clang loop vectorize(assume_safety)")
+#elif defined(__GNUC__)
+#define JAXSPRING_INDEPENDENT _Pragma("GCC ivdep")
+#else
+#define JAXSPRING_INDEPENDENT
+#endif
+
+namespace {
+
+constexpr int64_t kRun = 256;  // longest run of springs processed at once (scratch rows)
+constexpr int64_t kDrag = 1, kGravity = 2, kGround = 4;  // flags
+// Springs in one lattice above which a second thread pays for its two barriers a step.
+constexpr int64_t kSpringsForThreads = 60000;
+
+struct Run {
+  int64_t a, k, len;  // springs k .. k+len-1 join particles a+j and a+j+shift
+};
+
+struct Layout {
+  int64_t n = 0, springs = 0;
+  std::vector<int64_t> shift;
+  std::vector<std::vector<Run>> runs;
+};
+
+ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const int64_t> offsets) {
+  const int64_t dims = static_cast<int64_t>(shape.size());
+  if (dims < 1 || dims > 3 || offsets.size() % dims != 0) {
+    return ffi::Unexpected(ffi::Error::InvalidArgument("lattice: shape must have 1 to 3 axes and offsets a multiple of them"));
+  }
+  int64_t s[3] = {1, 1, 1};
+  for (int64_t d = 0; d < dims; ++d) s[3 - dims + d] = shape[d];
+  Layout layout;
+  layout.n = s[0] * s[1] * s[2];
+  int64_t start = 0;
+  for (size_t f = 0; f < offsets.size() / dims; ++f) {
+    int64_t o[3] = {0, 0, 0}, lo[3], r[3];
+    for (int64_t d = 0; d < dims; ++d) o[3 - dims + d] = offsets[f * dims + d];
+    for (int d = 0; d < 3; ++d) {
+      lo[d] = std::max<int64_t>(0, -o[d]);
+      r[d] = s[d] - std::abs(o[d]);
+      if (r[d] <= 0) return ffi::Unexpected(ffi::Error::InvalidArgument("lattice: a spring family is empty"));
+    }
+    std::vector<Run> runs;
+    for (int64_t i0 = 0; i0 < r[0]; ++i0) {
+      for (int64_t i1 = 0; i1 < r[1]; ++i1) {
+        const int64_t a = ((lo[0] + i0) * s[1] + lo[1] + i1) * s[2] + lo[2];
+        const int64_t k = start + (i0 * r[1] + i1) * r[2];
+        if (!runs.empty() && runs.back().a + runs.back().len == a && runs.back().k + runs.back().len == k) {
+          runs.back().len += r[2];
+        } else {
+          runs.push_back({a, k, r[2]});
+        }
+      }
+    }
+    std::vector<Run> pieces;  // at most kRun springs each
+    for (const Run& run : runs) {
+      for (int64_t j = 0; j < run.len; j += kRun) pieces.push_back({run.a + j, run.k + j, std::min(kRun, run.len - j)});
+    }
+    layout.shift.push_back((o[0] * s[1] + o[1]) * s[2] + o[2]);
+    layout.runs.push_back(std::move(pieces));
+    start += r[0] * r[1] * r[2];
+  }
+  layout.springs = start;
+  return layout;
+}
+
+// The layout of a (shape, offsets) pair, built once per process (calls repeat them).
+ffi::ErrorOr<const Layout*> MakeLayout(ffi::Span<const int64_t> shape, ffi::Span<const int64_t> offsets) {
+  static std::mutex mutex;
+  static std::map<std::vector<int64_t>, std::unique_ptr<Layout>> cache;
+  std::vector<int64_t> key(shape.begin(), shape.end());
+  key.push_back(-1);
+  key.insert(key.end(), offsets.begin(), offsets.end());
+  std::lock_guard<std::mutex> lock(mutex);
+  auto found = cache.find(key);
+  if (found != cache.end()) return found->second.get();
+  auto built = BuildLayout(shape, offsets);
+  if (built.has_error()) return ffi::Unexpected(built.error());
+  auto stored = std::make_unique<Layout>(std::move(built.value()));
+  const Layout* layout = stored.get();
+  cache.emplace(std::move(key), std::move(stored));
+  return layout;
+}
+
+template <typename T>
+struct Inputs {  // one batch member's parameters
+  const T *rest, *ks, *kd, *mass, *free, *cdm, *gravity, *kg, *kgd, *height;
+};
+
+struct Config {
+  int64_t steps, flags;
+  double dt;
+  int64_t stride;  // the forward call stores the state every `stride` steps
+};
+
+// A spin barrier for the threads of one call (yielding when it waits long).
+class Team {
+ public:
+  explicit Team(int size) : size_(size) {}
+  int size() const { return size_; }
+  void Sync() {
+    if (size_ == 1) return;
+    const int generation = generation_.load(std::memory_order_acquire);
+    if (arrived_.fetch_add(1, std::memory_order_acq_rel) + 1 == size_) {
+      arrived_.store(0, std::memory_order_relaxed);
+      generation_.fetch_add(1, std::memory_order_release);
+      return;
+    }
+    for (int spins = 0; generation_.load(std::memory_order_acquire) == generation; ++spins) {
+      if (spins > 2000) std::this_thread::yield();
+    }
+  }
+  template <typename Body>
+  void Launch(Body body) {  // body(thread index)
+    std::vector<std::thread> pool;
+    for (int t = 1; t < size_; ++t) pool.emplace_back(body, t);
+    body(0);
+    for (auto& thread : pool) thread.join();
+  }
+
+ private:
+  int size_;
+  std::atomic<int> arrived_{0}, generation_{0};
+};
+
+int HardwareThreads() {
+  static const int count = std::max(1u, std::thread::hardware_concurrency());  // a system call: once
+  return count;
+}
+
+// Force of springs k.. on their particle a (the one on b is minus it), into out[3][kRun].
+template <typename T>
+void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks, const T* kd,
+               int64_t len, T* out) {
+  T* o0 = out;
+  T* o1 = out + kRun;
+  T* o2 = out + 2 * kRun;
+  JAXSPRING_INDEPENDENT
+  for (int64_t j = 0; j < len; ++j) {
+    const T d0 = x[b + j] - x[a + j], d1 = x[n + b + j] - x[n + a + j], d2 = x[2 * n + b + j] - x[2 * n + a + j];
+    const T w0 = v[b + j] - v[a + j], w1 = v[n + b + j] - v[n + a + j], w2 = v[2 * n + b + j] - v[2 * n + a + j];
+    const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+    const T inv = T(1) / (length > 0 ? length : T(1));  // u = d at length 0, as safe_direction
+    const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
+    const T m = ks[j] * (length - rest[j]) + kd[j] * (w0 * u0 + w1 * u1 + w2 * u2);
+    o0[j] = m * u0;
+    o1[j] = m * u1;
+    o2[j] = m * u2;
+  }
+}
+
+template <typename T>
+inline void AddRow(T* target, const T* row, int64_t len) {
+  JAXSPRING_INDEPENDENT
+  for (int64_t j = 0; j < len; ++j) target[j] += row[j];
+}
+
+template <typename T>
+inline void SubtractRow(T* target, const T* row, int64_t len) {
+  JAXSPRING_INDEPENDENT
+  for (int64_t j = 0; j < len; ++j) target[j] -= row[j];
+}
+
+// Adds +row to particles a.. and -row to b.. for all three components.
+template <typename T>
+inline void Scatter(T* target, int64_t n, int64_t a, int64_t b, const T* row, int64_t len) {
+  for (int c = 0; c < 3; ++c) {
+    AddRow(target + c * n + a, row + c * kRun, len);
+    SubtractRow(target + c * n + b, row + c * kRun, len);
+  }
+}
+
+// Particle range [lo, hi) whose springs (by their particle a) thread t of `threads` handles.
+inline void Share(int64_t n, int t, int threads, int64_t* lo, int64_t* hi) {
+  *lo = n * t / threads;
+  *hi = n * (t + 1) / threads;
+}
+
+// Adds the other threads' private buffers into `target` over [lo, hi) and clears them.
+template <typename T>
+void Gather(T* target, std::vector<std::vector<T>>& buffers, int64_t n, int64_t lo, int64_t hi) {
+  for (size_t t = 1; t < buffers.size(); ++t) {
+    for (int c = 0; c < 3; ++c) {
+      T* other = buffers[t].data() + c * n;
+      T* mine = target + c * n;
+      JAXSPRING_INDEPENDENT
+      for (int64_t i = lo; i < hi; ++i) {
+        mine[i] += other[i];
+        other[i] = T(0);
+      }
+    }
+  }
+}
+
+// Adds drag, gravity and ground to the spring forces in `force` (which it clears) and
+// integrates particles [lo, hi): v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
+template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
+void ParticleStep(const Inputs<T>& p, T* x, T* v, T* force, int64_t n, T dt, T g0, T g1, T g2, T height,
+                  int64_t lo, int64_t hi) {
+  T* x0 = x;
+  T* x1 = x + n;
+  T* x2 = x + 2 * n;
+  T* v0 = v;
+  T* v1 = v + n;
+  T* v2 = v + 2 * n;
+  T* f0 = force;
+  T* f1 = force + n;
+  T* f2 = force + 2 * n;
+  const T* mass = p.mass;
+  const T* free = p.free;
+  const T* cdm = p.cdm;
+  const T* kg = p.kg;
+  const T* kgd = p.kgd;
+  JAXSPRING_INDEPENDENT
+  for (int64_t i = lo; i < hi; ++i) {
+    T a0 = f0[i], a1 = f1[i], a2 = f2[i];
+    f0[i] = T(0);
+    f1[i] = T(0);
+    f2[i] = T(0);
+    const T w0 = v0[i], w1 = v1[i], w2 = v2[i], m = mass[i];
+    if (kDragOn) {
+      const T c = -cdm[i] * std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
+      a0 += c * w0;
+      a1 += c * w1;
+      a2 += c * w2;
+    }
+    if (kGravityOn) {
+      a0 += m * g0;
+      a1 += m * g1;
+      a2 += m * g2;
+    }
+    if (kGroundOn) {
+      const T depth = height - x1[i];
+      a1 += depth > 0 ? kg[i] * depth - kgd[i] * w1 : T(0);
+    }
+    const bool on = free[i] != T(0);
+    const T n0 = on ? w0 + dt * a0 / m : T(0), n1 = on ? w1 + dt * a1 / m : T(0), n2 = on ? w2 + dt * a2 / m : T(0);
+    v0[i] = n0;
+    v1[i] = n1;
+    v2[i] = n2;
+    x0[i] += dt * n0;
+    x1[i] += dt * n1;
+    x2[i] += dt * n2;
+  }
+}
+
+template <typename T>
+using ParticleStepFn = void (*)(const Inputs<T>&, T*, T*, T*, int64_t, T, T, T, T, T, int64_t, int64_t);
+
+template <typename T>
+ParticleStepFn<T> PickParticleStep(bool drag, bool gravity, bool ground) {
+  static const ParticleStepFn<T> table[8] = {
+      ParticleStep<T, false, false, false>, ParticleStep<T, true, false, false>, ParticleStep<T, false, true, false>,
+      ParticleStep<T, true, true, false>,   ParticleStep<T, false, false, true>, ParticleStep<T, true, false, true>,
+      ParticleStep<T, false, true, true>,   ParticleStep<T, true, true, true>};
+  return table[(drag ? 1 : 0) + (gravity ? 2 : 0) + (ground ? 4 : 0)];
+}
+
+// `steps` steps of one member; thread t of the team. force is shared (3n, zero on entry),
+// extra[t] (t >= 1) private; traj (ceil(steps / stride), 2, 3, n) or null: the state at
+// the start of every stride-th step.
+template <typename T>
+void Simulate(const Layout& layout, const Inputs<T>& p, const Config& config, T* x, T* v, T* force,
+              std::vector<std::vector<T>>& extra, T* traj, Team& team, int t) {
+  const int64_t n = layout.n;
+  const T dt = static_cast<T>(config.dt);
+  const bool drag = config.flags & kDrag, gravity = config.flags & kGravity, ground = config.flags & kGround;
+  const T g0 = gravity ? p.gravity[0] : T(0), g1 = gravity ? p.gravity[1] : T(0), g2 = gravity ? p.gravity[2] : T(0);
+  const T height = ground ? p.height[0] : T(0);
+  const auto particles = PickParticleStep<T>(drag, gravity, ground);
+  std::vector<T> row(3 * kRun);
+  int64_t lo, hi;
+  Share(n, t, team.size(), &lo, &hi);
+  T* mine = t == 0 ? force : extra[t].data();
+  for (int64_t step = 0; step < config.steps; ++step) {
+    for (size_t f = 0; f < layout.runs.size(); ++f) {
+      const int64_t shift = layout.shift[f];
+      for (const Run& run : layout.runs[f]) {
+        if (run.a < lo || run.a >= hi) continue;
+        SpringRun(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row.data());
+        Scatter(mine, n, run.a, run.a + shift, row.data(), run.len);
+      }
+    }
+    team.Sync();
+    Gather(force, extra, n, lo, hi);
+    if (traj && step % config.stride == 0) {
+      T* state = traj + step / config.stride * 6 * n;
+      for (int c = 0; c < 3; ++c) {
+        std::copy(x + c * n + lo, x + c * n + hi, state + c * n + lo);
+        std::copy(v + c * n + lo, v + c * n + hi, state + (3 + c) * n + lo);
+      }
+    }
+    particles(p, x, v, force, n, dt, g0, g1, g2, height, lo, hi);
+    team.Sync();
+  }
+}
+
+// Cotangents accumulated over the steps of one member (pointers into the outputs).
+template <typename T>
+struct Cotangents {
+  T *x, *v, *rest, *ks, *kd, *mass, *cdm, *gravity, *kg, *kgd, *height;
+};
+
+template <typename T>
+struct Partials {  // one thread's sums for the parameters shared by all particles
+  T gravity[3] = {0, 0, 0};
+  T height = 0;
+};
+
+// Reverse of `ParticleStep` over particles [lo, hi): from the cotangents of x', v' in
+// out.x, out.v, writes those of x, v through the integrator, drag, gravity and ground
+// (the springs' part is added by the spring pass) and the cotangent of the force to gf.
+template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
+Partials<T> ReverseParticles(const Inputs<T>& p, const Cotangents<T>& out, const T* x, const T* v, const T* v_next,
+                             T* gf, int64_t n, T dt, T g0, T g1, T g2, T height, int64_t lo, int64_t hi,
+                             Partials<T> sums) {
+  T* cx1 = out.x + n;
+  T* cv0 = out.v;
+  T* cv1 = out.v + n;
+  T* cv2 = out.v + 2 * n;
+  const T* cx0 = out.x;
+  const T* cx2 = out.x + 2 * n;
+  T* gf0 = gf;
+  T* gf1 = gf + n;
+  T* gf2 = gf + 2 * n;
+  T* cmass = out.mass;
+  T* ccdm = out.cdm;
+  T* ckg = out.kg;
+  T* ckgd = out.kgd;
+  const T* mass = p.mass;
+  const T* free = p.free;
+  const T* cdm = p.cdm;
+  const T* kg = p.kg;
+  const T* kgd = p.kgd;
+  T cg0 = 0, cg1 = 0, cg2 = 0, ch = 0;
+  JAXSPRING_INDEPENDENT
+  for (int64_t i = lo; i < hi; ++i) {
+    const T m = mass[i];
+    const bool on = free[i] != T(0);
+    const T w0 = v[i], w1 = v[n + i], w2 = v[2 * n + i];
+    // v' feeds x' = x + dt v'; v' = v + (dt F) / m
+    T c0 = on ? cv0[i] + dt * cx0[i] : T(0);
+    T c1 = on ? cv1[i] + dt * cx1[i] : T(0);
+    T c2 = on ? cv2[i] + dt * cx2[i] : T(0);
+    const T f0 = c0 * dt / m, f1 = c1 * dt / m, f2 = c2 * dt / m;
+    // dv'/dm = -(dt F) / m^2 = -(v' - v) / m for free particles
+    T cm = -(c0 * (v_next[i] - w0) + c1 * (v_next[n + i] - w1) + c2 * (v_next[2 * n + i] - w2)) / m;
+    if (kGravityOn) {
+      cg0 += m * f0;
+      cg1 += m * f1;
+      cg2 += m * f2;
+      cm += g0 * f0 + g1 * f1 + g2 * f2;
+    }
+    if (kDragOn) {
+      const T speed = std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
+      const T wf = w0 * f0 + w1 * f1 + w2 * f2;
+      ccdm[i] -= speed * wf;
+      const T along = wf / (speed > 0 ? speed : T(1));  // d|v|/dv = 0 at v = 0, as safe_norm
+      c0 -= cdm[i] * (speed * f0 + along * w0);
+      c1 -= cdm[i] * (speed * f1 + along * w1);
+      c2 -= cdm[i] * (speed * f2 + along * w2);
+    }
+    if (kGroundOn) {
+      const T depth = height - x[n + i];
+      const T normal = depth > 0 ? f1 : T(0);
+      ckg[i] += depth * normal;
+      ckgd[i] -= w1 * normal;
+      ch += kg[i] * normal;
+      cx1[i] -= kg[i] * normal;
+      c1 -= kgd[i] * normal;
+    }
+    cmass[i] += cm;
+    cv0[i] = c0;
+    cv1[i] = c1;
+    cv2[i] = c2;
+    gf0[i] = f0;
+    gf1[i] = f1;
+    gf2[i] = f2;
+  }
+  sums.gravity[0] += cg0;
+  sums.gravity[1] += cg1;
+  sums.gravity[2] += cg2;
+  sums.height += ch;
+  return sums;
+}
+
+template <typename T>
+using ReverseParticlesFn = Partials<T> (*)(const Inputs<T>&, const Cotangents<T>&, const T*, const T*, const T*, T*,
+                                           int64_t, T, T, T, T, T, int64_t, int64_t, Partials<T>);
+
+template <typename T>
+ReverseParticlesFn<T> PickReverseParticles(bool drag, bool gravity, bool ground) {
+  static const ReverseParticlesFn<T> table[8] = {
+      ReverseParticles<T, false, false, false>, ReverseParticles<T, true, false, false>,
+      ReverseParticles<T, false, true, false>,  ReverseParticles<T, true, true, false>,
+      ReverseParticles<T, false, false, true>,  ReverseParticles<T, true, false, true>,
+      ReverseParticles<T, false, true, true>,   ReverseParticles<T, true, true, true>};
+  return table[(drag ? 1 : 0) + (gravity ? 2 : 0) + (ground ? 4 : 0)];
+}
+
+// Reverse pass over `steps` steps from the stored states (every step's); the cotangent
+// of the final state is in out.x, out.v on entry, that of the initial state on exit.
+template <typename T>
+void Reverse(const Layout& layout, const Inputs<T>& p, const Config& config, const T* traj, const T* v_final,
+             const Cotangents<T>& out, T* gf, std::vector<std::vector<T>>& extra_x,
+             std::vector<std::vector<T>>& extra_v, Partials<T>& partials, Team& team, int t) {
+  const int64_t n = layout.n;
+  const T dt = static_cast<T>(config.dt);
+  const bool drag = config.flags & kDrag, gravity = config.flags & kGravity, ground = config.flags & kGround;
+  const T g0 = gravity ? p.gravity[0] : T(0), g1 = gravity ? p.gravity[1] : T(0), g2 = gravity ? p.gravity[2] : T(0);
+  const T height = ground ? p.height[0] : T(0);
+  std::vector<T> row(6 * kRun);
+  int64_t lo, hi;
+  Share(n, t, team.size(), &lo, &hi);
+  T* gx = t == 0 ? out.x : extra_x[t].data();
+  T* gv = t == 0 ? out.v : extra_v[t].data();
+  const auto reverse_particles = PickReverseParticles<T>(drag, gravity, ground);
+  for (int64_t step = config.steps - 1; step >= 0; --step) {
+    const T* x = traj + step * 6 * n;
+    const T* v = x + 3 * n;
+    const T* v_next = step + 1 < config.steps ? traj + (step + 1) * 6 * n + 3 * n : v_final;
+    Gather(out.x, extra_x, n, lo, hi);
+    Gather(out.v, extra_v, n, lo, hi);
+    partials = reverse_particles(p, out, x, v, v_next, gf, n, dt, g0, g1, g2, height, lo, hi, partials);
+    team.Sync();
+    for (size_t f = 0; f < layout.runs.size(); ++f) {
+      const int64_t shift = layout.shift[f];
+      for (const Run& run : layout.runs[f]) {
+        if (run.a < lo || run.a >= hi) continue;
+        const int64_t a = run.a, b = run.a + shift, len = run.len;
+        const T* rest = p.rest + run.k;
+        const T* ks = p.ks + run.k;
+        const T* kd = p.kd + run.k;
+        T* crest = out.rest + run.k;
+        T* cks = out.ks + run.k;
+        T* ckd = out.kd + run.k;
+        T* r = row.data();
+        JAXSPRING_INDEPENDENT
+        for (int64_t j = 0; j < len; ++j) {
+          const T d0 = x[b + j] - x[a + j], d1 = x[n + b + j] - x[n + a + j], d2 = x[2 * n + b + j] - x[2 * n + a + j];
+          const T w0 = v[b + j] - v[a + j], w1 = v[n + b + j] - v[n + a + j], w2 = v[2 * n + b + j] - v[2 * n + a + j];
+          const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+          const T inv = T(1) / (length > 0 ? length : T(1));
+          const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
+          const T e = length - rest[j], closing = w0 * u0 + w1 * u1 + w2 * u2;
+          const T m = ks[j] * e + kd[j] * closing;
+          const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j],
+                  c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
+          const T uc = u0 * c0 + u1 * c1 + u2 * c2;
+          const T cc = kd[j] * uc;  // m = ks e + kd closing
+          const T cu0 = m * c0 + w0 * cc, cu1 = m * c1 + w1 * cc, cu2 = m * c2 + w2 * cc;
+          const T cl = ks[j] * uc - inv * (u0 * cu0 + u1 * cu1 + u2 * cu2);  // u = d / length
+          r[j] = inv * cu0 + u0 * cl;
+          r[kRun + j] = inv * cu1 + u1 * cl;
+          r[2 * kRun + j] = inv * cu2 + u2 * cl;
+          r[3 * kRun + j] = u0 * cc;
+          r[4 * kRun + j] = u1 * cc;
+          r[5 * kRun + j] = u2 * cc;
+          cks[j] += e * uc;
+          ckd[j] += closing * uc;
+          crest[j] -= ks[j] * uc;
+        }
+        Scatter(gx, n, b, a, r, len);  // d = x_b - x_a
+        Scatter(gv, n, b, a, r + 3 * kRun, len);
+      }
+    }
+    team.Sync();
+  }
+  Gather(out.x, extra_x, n, lo, hi);
+  Gather(out.v, extra_v, n, lo, hi);
+}
+
+// Threads for a call: members over threads when batched, one lattice split when large.
+inline int Threads(int64_t batch, const Layout& layout) {
+  if (batch > 1) return static_cast<int>(std::min<int64_t>(HardwareThreads(), batch));
+  return layout.springs >= kSpringsForThreads ? std::min(2, HardwareThreads()) : 1;
+}
+
+// Buffers of one team working on one member at a time.
+template <typename T>
+struct Workspace {
+  Workspace(int64_t n, int threads, int64_t segment = 0)
+      : force(3 * n, T(0)), extra(threads), extra_x(threads), extra_v(threads), partials(threads) {
+    for (int t = 1; t < threads; ++t) extra[t].assign(3 * n, T(0));
+    if (segment > 0) {
+      x.resize(3 * n);
+      v.resize(3 * n);
+      gf.resize(3 * n);
+      states.resize(segment * 6 * n);
+      for (int t = 1; t < threads; ++t) {
+        extra_x[t].assign(3 * n, T(0));
+        extra_v[t].assign(3 * n, T(0));
+      }
+    }
+  }
+  std::vector<T> force, x, v, gf, states;
+  std::vector<std::vector<T>> extra, extra_x, extra_v;
+  std::vector<Partials<T>> partials;
+};
+
+// The reverse pass of one member from its stored states (one every config.stride steps):
+// segment by segment from the last, re-run the segment's steps keeping every state,
+// then run `Reverse` over them. Thread t of the team.
+template <typename T>
+void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored,
+                    const T* v_final, const Cotangents<T>& out, Workspace<T>& work, Team& team, int t) {
+  const int64_t n = layout.n, stride = config.stride;
+  int64_t lo, hi;
+  Share(n, t, team.size(), &lo, &hi);
+  const int64_t segments = (config.steps + stride - 1) / stride;
+  for (int64_t segment = segments - 1; segment >= 0; --segment) {
+    const int64_t first = segment * stride, length = std::min(stride, config.steps - first);
+    const T* start = stored + segment * 6 * n;
+    const T* v_after = segment + 1 < segments ? stored + (segment + 1) * 6 * n + 3 * n : v_final;
+    for (int c = 0; c < 3; ++c) {
+      std::copy(start + c * n + lo, start + c * n + hi, work.x.data() + c * n + lo);
+      std::copy(start + (3 + c) * n + lo, start + (3 + c) * n + hi, work.v.data() + c * n + lo);
+    }
+    team.Sync();
+    const Config replay{length - 1, config.flags, config.dt, 1};
+    Simulate(layout, p, replay, work.x.data(), work.v.data(), work.force.data(), work.extra, work.states.data(),
+             team, t);
+    T* last = work.states.data() + (length - 1) * 6 * n;  // the segment's last starting state
+    for (int c = 0; c < 3; ++c) {
+      std::copy(work.x.data() + c * n + lo, work.x.data() + c * n + hi, last + c * n + lo);
+      std::copy(work.v.data() + c * n + lo, work.v.data() + c * n + hi, last + (3 + c) * n + lo);
+    }
+    team.Sync();
+    const Config reverse{length, config.flags, config.dt, 1};
+    Reverse(layout, p, reverse, work.states.data(), v_after, out, work.gf.data(), work.extra_x, work.extra_v,
+            work.partials[t], team, t);
+    team.Sync();
+  }
+}
+
+template <ffi::DataType DT>
+Inputs<ffi::NativeType<DT>> Member(int64_t i, int64_t batch, ffi::Buffer<DT> rest, ffi::Buffer<DT> ks,
+                                   ffi::Buffer<DT> kd, ffi::Buffer<DT> mass, ffi::Buffer<DT> free,
+                                   ffi::Buffer<DT> cdm, ffi::Buffer<DT> gravity, ffi::Buffer<DT> kg,
+                                   ffi::Buffer<DT> kgd, ffi::Buffer<DT> height) {
+  auto at = [&](ffi::Buffer<DT>& buffer) { return buffer.typed_data() + i * (buffer.element_count() / batch); };
+  return {at(rest), at(ks), at(kd), at(mass), at(free), at(cdm), at(gravity), at(kg), at(kgd), at(height)};
+}
+
+// Runs work(member, workspace, team, thread) for every member: members split over the
+// threads when batched (each alone), else one member by the whole team.
+template <typename T, typename Work>
+void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work) {
+  const int threads = Threads(batch, layout);
+  Team pool(threads);
+  if (batch > 1) {
+    pool.Launch([&](int t) {
+      Team solo(1);
+      Workspace<T> space(layout.n, 1, segment);
+      for (int64_t i = t; i < batch; i += threads) work(i, space, solo, 0);
+    });
+    return;
+  }
+  Workspace<T> space(layout.n, threads, segment);
+  pool.Launch([&](int t) { work(0, space, pool, t); });
+}
+
+template <ffi::DataType DT>
+ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, ffi::Buffer<DT> ks,
+                   ffi::Buffer<DT> kd, ffi::Buffer<DT> mass, ffi::Buffer<DT> free, ffi::Buffer<DT> cdm,
+                   ffi::Buffer<DT> gravity, ffi::Buffer<DT> kg, ffi::Buffer<DT> kgd, ffi::Buffer<DT> height,
+                   ffi::Span<const int64_t> shape, ffi::Span<const int64_t> offsets, int64_t steps, double dt,
+                   int64_t flags, int64_t stride, ffi::ResultBuffer<DT> x_out, ffi::ResultBuffer<DT> v_out,
+                   ffi::ResultBuffer<DT> stored) {
+  using T = ffi::NativeType<DT>;
+  auto made = MakeLayout(shape, offsets);
+  if (made.has_error()) return made.error();
+  const Layout& layout = *made.value();
+  const int64_t n = layout.n, batch = x.element_count() / (3 * n);
+  if (static_cast<int64_t>(rest.element_count()) != batch * layout.springs || stride < 1) {
+    return ffi::Error::InvalidArgument("lattice: spring count or stride");
+  }
+  const bool store = stored->element_count() > 0;
+  const int64_t per_member = (steps + stride - 1) / stride * 6 * n;
+  const Config config{steps, flags, dt, stride};
+  std::copy(x.typed_data(), x.typed_data() + x.element_count(), x_out->typed_data());
+  std::copy(v.typed_data(), v.typed_data() + v.element_count(), v_out->typed_data());
+  ForMembers<T>(batch, layout, 0, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
+    const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+    Simulate(layout, p, config, x_out->typed_data() + i * 3 * n, v_out->typed_data() + i * 3 * n,
+             work.force.data(), work.extra, store ? stored->typed_data() + i * per_member : nullptr, team, t);
+  });
+  return ffi::Error::Success();
+}
+
+template <ffi::DataType DT>
+ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi::Buffer<DT> rest, ffi::Buffer<DT> ks,
+                           ffi::Buffer<DT> kd, ffi::Buffer<DT> mass, ffi::Buffer<DT> free, ffi::Buffer<DT> cdm,
+                           ffi::Buffer<DT> gravity, ffi::Buffer<DT> kg, ffi::Buffer<DT> kgd, ffi::Buffer<DT> height,
+                           ffi::Buffer<DT> ct_x, ffi::Buffer<DT> ct_v, ffi::Span<const int64_t> shape,
+                           ffi::Span<const int64_t> offsets, int64_t steps, double dt, int64_t flags, int64_t stride,
+                           ffi::ResultBuffer<DT> out_x, ffi::ResultBuffer<DT> out_v, ffi::ResultBuffer<DT> out_rest,
+                           ffi::ResultBuffer<DT> out_ks, ffi::ResultBuffer<DT> out_kd,
+                           ffi::ResultBuffer<DT> out_mass, ffi::ResultBuffer<DT> out_cdm,
+                           ffi::ResultBuffer<DT> out_gravity, ffi::ResultBuffer<DT> out_kg,
+                           ffi::ResultBuffer<DT> out_kgd, ffi::ResultBuffer<DT> out_height) {
+  using T = ffi::NativeType<DT>;
+  auto made = MakeLayout(shape, offsets);
+  if (made.has_error()) return made.error();
+  const Layout& layout = *made.value();
+  const int64_t n = layout.n, batch = ct_x.element_count() / (3 * n);
+  if (stride < 1) return ffi::Error::InvalidArgument("lattice: stride");
+  const Config config{steps, flags, dt, stride};
+  const int64_t per_member = (steps + stride - 1) / stride * 6 * n;
+  std::copy(ct_x.typed_data(), ct_x.typed_data() + ct_x.element_count(), out_x->typed_data());
+  std::copy(ct_v.typed_data(), ct_v.typed_data() + ct_v.element_count(), out_v->typed_data());
+  for (auto* buffer : {&out_rest, &out_ks, &out_kd, &out_mass, &out_cdm, &out_gravity, &out_kg, &out_kgd,
+                       &out_height}) {
+    std::fill((*buffer)->typed_data(), (*buffer)->typed_data() + (*buffer)->element_count(), T(0));
+  }
+  if (steps == 0) return ffi::Error::Success();
+  ForMembers<T>(batch, layout, std::min(stride, steps), [&](int64_t i, Workspace<T>& work, Team& team, int t) {
+    auto at = [&](ffi::ResultBuffer<DT>& buffer) {
+      return buffer->typed_data() + i * (buffer->element_count() / batch);
+    };
+    const Cotangents<T> out{at(out_x),       at(out_v),  at(out_rest), at(out_ks),  at(out_kd),    at(out_mass),
+                            at(out_cdm),     at(out_gravity), at(out_kg), at(out_kgd), at(out_height)};
+    const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+    work.partials[t] = Partials<T>();
+    BackwardMember(layout, p, config, stored.typed_data() + i * per_member, v_final.typed_data() + i * 3 * n, out,
+                   work, team, t);
+    team.Sync();
+    if (t == 0) {
+      for (const Partials<T>& sums : work.partials) {
+        for (int k = 0; k < 3; ++k) out.gravity[k] += sums.gravity[k];
+        out.height[0] += sums.height;
+      }
+    }
+  });
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+#define JAXSPRING_PARAMETER_ARGS(DT)                                                        \
+  .Arg<ffi::Buffer<DT>>() /* rest */                                                        \
+      .Arg<ffi::Buffer<DT>>() /* ks */                                                      \
+      .Arg<ffi::Buffer<DT>>() /* kd */                                                      \
+      .Arg<ffi::Buffer<DT>>() /* mass */                                                    \
+      .Arg<ffi::Buffer<DT>>() /* free */                                                    \
+      .Arg<ffi::Buffer<DT>>() /* cd * drag flag */                                          \
+      .Arg<ffi::Buffer<DT>>() /* gravity */                                                 \
+      .Arg<ffi::Buffer<DT>>() /* kg */                                                      \
+      .Arg<ffi::Buffer<DT>>() /* kgd */                                                     \
+      .Arg<ffi::Buffer<DT>>() /* ground height */
+
+#define JAXSPRING_LATTICE_ATTRS                                                             \
+  .Attr<ffi::Span<const int64_t>>("shape")                                                  \
+      .Attr<ffi::Span<const int64_t>>("offsets")                                            \
+      .Attr<int64_t>("steps")                                                               \
+      .Attr<double>("dt")                                                                   \
+      .Attr<int64_t>("flags")                                                               \
+      .Attr<int64_t>("stride")
+
+#define JAXSPRING_ADVANCE(name, DT)                                                         \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(name, Advance<DT>,                                          \
+                                ffi::Ffi::Bind()                                            \
+                                    .Arg<ffi::Buffer<DT>>()                                 \
+                                    .Arg<ffi::Buffer<DT>>() JAXSPRING_PARAMETER_ARGS(DT)    \
+                                        JAXSPRING_LATTICE_ATTRS.Ret<ffi::Buffer<DT>>()      \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>());
+
+#define JAXSPRING_ADVANCE_BACKWARD(name, DT)                                                \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(name, AdvanceBackward<DT>,                                  \
+                                ffi::Ffi::Bind()                                            \
+                                    .Arg<ffi::Buffer<DT>>()                                 \
+                                    .Arg<ffi::Buffer<DT>>() JAXSPRING_PARAMETER_ARGS(DT)    \
+                                        .Arg<ffi::Buffer<DT>>()                             \
+                                    .Arg<ffi::Buffer<DT>>() JAXSPRING_LATTICE_ATTRS         \
+                                        .Ret<ffi::Buffer<DT>>()                             \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
+                                    .Ret<ffi::Buffer<DT>>());
+
+JAXSPRING_ADVANCE(JaxspringLatticeF32, ffi::F32)
+JAXSPRING_ADVANCE(JaxspringLatticeF64, ffi::F64)
+JAXSPRING_ADVANCE_BACKWARD(JaxspringLatticeBackwardF32, ffi::F32)
+JAXSPRING_ADVANCE_BACKWARD(JaxspringLatticeBackwardF64, ffi::F64)
