@@ -22,6 +22,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -53,10 +54,15 @@ struct Run {
   int64_t a, k, len;  // springs k .. k+len-1 join particles a+j and a+j+shift
 };
 
+// A family with shift s is stepped as one run over the particle range [first, first +
+// count): every a there, b = a + s, including "padding" springs that join the end of a
+// lattice row to the start of the next. Those get ks = kd = 0 (zero force, zero
+// derivatives), and the loops run long and unit-stride instead of row by row.
 struct Layout {
-  int64_t n = 0, springs = 0;
+  int64_t n = 0, springs = 0, padded = 0;  // particles, springs, springs with padding
   std::vector<int64_t> shift;
-  std::vector<std::vector<Run>> runs;
+  std::vector<std::vector<Run>> runs;  // per family: pieces of its range, k = padded spring index
+  std::vector<Run> valid;              // the real springs: a = padded index, k = spring index
 };
 
 ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const int64_t> offsets) {
@@ -77,24 +83,19 @@ ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const
       r[d] = s[d] - std::abs(o[d]);
       if (r[d] <= 0) return ffi::Unexpected(ffi::Error::InvalidArgument("lattice: a spring family is empty"));
     }
-    std::vector<Run> runs;
+    const int64_t first = (lo[0] * s[1] + lo[1]) * s[2] + lo[2];
+    const int64_t count = ((lo[0] + r[0] - 1) * s[1] + lo[1] + r[1] - 1) * s[2] + lo[2] + r[2] - first;
     for (int64_t i0 = 0; i0 < r[0]; ++i0) {
       for (int64_t i1 = 0; i1 < r[1]; ++i1) {
         const int64_t a = ((lo[0] + i0) * s[1] + lo[1] + i1) * s[2] + lo[2];
-        const int64_t k = start + (i0 * r[1] + i1) * r[2];
-        if (!runs.empty() && runs.back().a + runs.back().len == a && runs.back().k + runs.back().len == k) {
-          runs.back().len += r[2];
-        } else {
-          runs.push_back({a, k, r[2]});
-        }
+        layout.valid.push_back({layout.padded + a - first, start + (i0 * r[1] + i1) * r[2], r[2]});
       }
     }
     std::vector<Run> pieces;  // at most kRun springs each
-    for (const Run& run : runs) {
-      for (int64_t j = 0; j < run.len; j += kRun) pieces.push_back({run.a + j, run.k + j, std::min(kRun, run.len - j)});
-    }
+    for (int64_t j = 0; j < count; j += kRun) pieces.push_back({first + j, layout.padded + j, std::min(kRun, count - j)});
     layout.shift.push_back((o[0] * s[1] + o[1]) * s[2] + o[2]);
     layout.runs.push_back(std::move(pieces));
+    layout.padded += count;
     start += r[0] * r[1] * r[2];
   }
   layout.springs = start;
@@ -198,7 +199,8 @@ inline void SubtractRow(T* target, const T* row, int64_t len) {
   for (int64_t j = 0; j < len; ++j) target[j] -= row[j];
 }
 
-// Adds +row to particles a.. and -row to b.. for all three components.
+// Adds +row to particles a.. and -row to b.. for all three components (two separate
+// loops: with a short shift the two ranges overlap).
 template <typename T>
 inline void Scatter(T* target, int64_t n, int64_t a, int64_t b, const T* row, int64_t len) {
   for (int c = 0; c < 3; ++c) {
@@ -435,6 +437,47 @@ ReverseParticlesFn<T> PickReverseParticles(bool drag, bool gravity, bool ground)
   return table[(drag ? 1 : 0) + (gravity ? 2 : 0) + (ground ? 4 : 0)];
 }
 
+// Reverse of `SpringRun` + `Scatter`: from gf, the cotangent of the force, adds the
+// springs' part of the cotangents of x and v (to gx, gv: + on b, - on a, as
+// d = x_b - x_a; via the scratch rows r[6][kRun]) and their cotangents of rest length,
+// ks and kd (to out.*[k..]).
+template <typename T>
+void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks,
+                const T* kd, int64_t len, const Cotangents<T>& out, int64_t k, T* gx, T* gv, T* r) {
+  T* crest = out.rest + k;
+  T* cks = out.ks + k;
+  T* ckd = out.kd + k;
+  JAXSPRING_INDEPENDENT
+  for (int64_t j = 0; j < len; ++j) {
+    const T d0 = x[b + j] - x[a + j], d1 = x[n + b + j] - x[n + a + j], d2 = x[2 * n + b + j] - x[2 * n + a + j];
+    const T w0 = v[b + j] - v[a + j], w1 = v[n + b + j] - v[n + a + j], w2 = v[2 * n + b + j] - v[2 * n + a + j];
+    const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+    const T inv = T(1) / (length > 0 ? length : T(1));
+    const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
+    const T e = length - rest[j], closing = w0 * u0 + w1 * u1 + w2 * u2;
+    const T m = ks[j] * e + kd[j] * closing;
+    const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j], c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
+    const T uc = u0 * c0 + u1 * c1 + u2 * c2;
+    const T cc = kd[j] * uc;  // m = ks e + kd closing
+    // with cu = m c + w cc (cotangent of u): u . cu = m uc + closing cc
+    const T cl = ks[j] * uc - inv * (m * uc + closing * cc);  // u = d / length
+    const T p = inv * m, q = inv * cc;
+    const T g0 = p * c0 + q * w0 + cl * u0, g1 = p * c1 + q * w1 + cl * u1, g2 = p * c2 + q * w2 + cl * u2;
+    const T h0 = u0 * cc, h1 = u1 * cc, h2 = u2 * cc;
+    cks[j] += e * uc;
+    ckd[j] += closing * uc;
+    crest[j] -= ks[j] * uc;
+      r[j] = g0;
+      r[kRun + j] = g1;
+      r[2 * kRun + j] = g2;
+      r[3 * kRun + j] = h0;
+      r[4 * kRun + j] = h1;
+      r[5 * kRun + j] = h2;
+  }
+  Scatter(gx, n, b, a, r, len);
+  Scatter(gv, n, b, a, r + 3 * kRun, len);
+}
+
 // Reverse pass over `steps` steps from the stored states (every step's); the cotangent
 // of the final state is in out.x, out.v on entry, that of the initial state on exit.
 template <typename T>
@@ -465,40 +508,8 @@ void Reverse(const Layout& layout, const Inputs<T>& p, const Config& config, con
       for (const Run& run : layout.runs[f]) {
         if (run.a < lo || run.a >= hi) continue;
         const int64_t a = run.a, b = run.a + shift, len = run.len;
-        const T* rest = p.rest + run.k;
-        const T* ks = p.ks + run.k;
-        const T* kd = p.kd + run.k;
-        T* crest = out.rest + run.k;
-        T* cks = out.ks + run.k;
-        T* ckd = out.kd + run.k;
-        T* r = row.data();
-        JAXSPRING_INDEPENDENT
-        for (int64_t j = 0; j < len; ++j) {
-          const T d0 = x[b + j] - x[a + j], d1 = x[n + b + j] - x[n + a + j], d2 = x[2 * n + b + j] - x[2 * n + a + j];
-          const T w0 = v[b + j] - v[a + j], w1 = v[n + b + j] - v[n + a + j], w2 = v[2 * n + b + j] - v[2 * n + a + j];
-          const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
-          const T inv = T(1) / (length > 0 ? length : T(1));
-          const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
-          const T e = length - rest[j], closing = w0 * u0 + w1 * u1 + w2 * u2;
-          const T m = ks[j] * e + kd[j] * closing;
-          const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j],
-                  c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
-          const T uc = u0 * c0 + u1 * c1 + u2 * c2;
-          const T cc = kd[j] * uc;  // m = ks e + kd closing
-          const T cu0 = m * c0 + w0 * cc, cu1 = m * c1 + w1 * cc, cu2 = m * c2 + w2 * cc;
-          const T cl = ks[j] * uc - inv * (u0 * cu0 + u1 * cu1 + u2 * cu2);  // u = d / length
-          r[j] = inv * cu0 + u0 * cl;
-          r[kRun + j] = inv * cu1 + u1 * cl;
-          r[2 * kRun + j] = inv * cu2 + u2 * cl;
-          r[3 * kRun + j] = u0 * cc;
-          r[4 * kRun + j] = u1 * cc;
-          r[5 * kRun + j] = u2 * cc;
-          cks[j] += e * uc;
-          ckd[j] += closing * uc;
-          crest[j] -= ks[j] * uc;
-        }
-        Scatter(gx, n, b, a, r, len);  // d = x_b - x_a
-        Scatter(gv, n, b, a, r + 3 * kRun, len);
+        ReverseRun(x, v, gf, n, a, b, p.rest + run.k, p.ks + run.k, p.kd + run.k, len, out, run.k, gx, gv,
+                   row.data());
       }
     }
     team.Sync();
@@ -530,44 +541,123 @@ struct Workspace {
       }
     }
   }
-  std::vector<T> force, x, v, gf, states;
+  // the member's spring parameters in padded order (zero for padding), and their cotangents
+  void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents) {
+    for (auto* buffer : {&rest, &ks, &kd}) buffer->assign(layout.padded, T(0));
+    for (const Run& r : layout.valid) {
+      std::copy(p.rest + r.k, p.rest + r.k + r.len, rest.data() + r.a);
+      std::copy(p.ks + r.k, p.ks + r.k + r.len, ks.data() + r.a);
+      std::copy(p.kd + r.k, p.kd + r.k + r.len, kd.data() + r.a);
+    }
+    if (cotangents) ct.assign(3 * layout.padded, T(0));
+  }
+  Inputs<T> Padded(Inputs<T> p) const {
+    p.rest = rest.data();
+    p.ks = ks.data();
+    p.kd = kd.data();
+    return p;
+  }
+  Cotangents<T> Padded(Cotangents<T> out, int64_t padded) {
+    out.rest = ct.data();
+    out.ks = ct.data() + padded;
+    out.kd = ct.data() + 2 * padded;
+    return out;
+  }
+  void Unpad(const Layout& layout, const Cotangents<T>& out) const {  // adds the real springs' cotangents
+    const int64_t padded = layout.padded;
+    for (const Run& r : layout.valid) {
+      for (int64_t j = 0; j < r.len; ++j) {
+        out.rest[r.k + j] += ct[r.a + j];
+        out.ks[r.k + j] += ct[padded + r.a + j];
+        out.kd[r.k + j] += ct[2 * padded + r.a + j];
+      }
+    }
+  }
+  std::vector<T> force, x, v, gf, states, rest, ks, kd, ct;
   std::vector<std::vector<T>> extra, extra_x, extra_v;
   std::vector<Partials<T>> partials;
 };
 
+// Re-runs segment `segment` (config.stride steps, fewer for the last) from its stored
+// starting state, writing the starting state of each of its steps to `states`.
+template <typename T>
+int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored, int64_t segment,
+               T* x, T* v, T* force, std::vector<std::vector<T>>& extra, T* states, Team& team, int t) {
+  const int64_t n = layout.n;
+  int64_t lo, hi;
+  Share(n, t, team.size(), &lo, &hi);
+  const int64_t length = std::min(config.stride, config.steps - segment * config.stride);
+  const T* start = stored + segment * 6 * n;
+  for (int c = 0; c < 3; ++c) {
+    std::copy(start + c * n + lo, start + c * n + hi, x + c * n + lo);
+    std::copy(start + (3 + c) * n + lo, start + (3 + c) * n + hi, v + c * n + lo);
+  }
+  team.Sync();
+  const Config replay{length - 1, config.flags, config.dt, 1};
+  Simulate(layout, p, replay, x, v, force, extra, states, team, t);
+  T* last = states + (length - 1) * 6 * n;  // the segment's last starting state
+  for (int c = 0; c < 3; ++c) {
+    std::copy(x + c * n + lo, x + c * n + hi, last + c * n + lo);
+    std::copy(v + c * n + lo, v + c * n + hi, last + (3 + c) * n + lo);
+  }
+  team.Sync();
+  return length;
+}
+
+// The velocity after segment `segment`: the next stored state's, or the final one.
+template <typename T>
+const T* VelocityAfter(const Config& config, const T* stored, const T* v_final, int64_t segment, int64_t n) {
+  const int64_t segments = (config.steps + config.stride - 1) / config.stride;
+  return segment + 1 < segments ? stored + (segment + 1) * 6 * n + 3 * n : v_final;
+}
+
 // The reverse pass of one member from its stored states (one every config.stride steps):
-// segment by segment from the last, re-run the segment's steps keeping every state,
-// then run `Reverse` over them. Thread t of the team.
+// segment by segment from the last, replay the segment keeping every state, then run
+// `Reverse` over it. Thread t of the team (which splits every pass by particles).
 template <typename T>
 void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored,
                     const T* v_final, const Cotangents<T>& out, Workspace<T>& work, Team& team, int t) {
-  const int64_t n = layout.n, stride = config.stride;
-  int64_t lo, hi;
-  Share(n, t, team.size(), &lo, &hi);
-  const int64_t segments = (config.steps + stride - 1) / stride;
+  const int64_t n = layout.n;
+  const int64_t segments = (config.steps + config.stride - 1) / config.stride;
   for (int64_t segment = segments - 1; segment >= 0; --segment) {
-    const int64_t first = segment * stride, length = std::min(stride, config.steps - first);
-    const T* start = stored + segment * 6 * n;
-    const T* v_after = segment + 1 < segments ? stored + (segment + 1) * 6 * n + 3 * n : v_final;
-    for (int c = 0; c < 3; ++c) {
-      std::copy(start + c * n + lo, start + c * n + hi, work.x.data() + c * n + lo);
-      std::copy(start + (3 + c) * n + lo, start + (3 + c) * n + hi, work.v.data() + c * n + lo);
-    }
-    team.Sync();
-    const Config replay{length - 1, config.flags, config.dt, 1};
-    Simulate(layout, p, replay, work.x.data(), work.v.data(), work.force.data(), work.extra, work.states.data(),
-             team, t);
-    T* last = work.states.data() + (length - 1) * 6 * n;  // the segment's last starting state
-    for (int c = 0; c < 3; ++c) {
-      std::copy(work.x.data() + c * n + lo, work.x.data() + c * n + hi, last + c * n + lo);
-      std::copy(work.v.data() + c * n + lo, work.v.data() + c * n + hi, last + (3 + c) * n + lo);
-    }
-    team.Sync();
+    const int64_t length = Replay(layout, p, config, stored, segment, work.x.data(), work.v.data(),
+                                  work.force.data(), work.extra, work.states.data(), team, t);
     const Config reverse{length, config.flags, config.dt, 1};
-    Reverse(layout, p, reverse, work.states.data(), v_after, out, work.gf.data(), work.extra_x, work.extra_v,
-            work.partials[t], team, t);
+    Reverse(layout, p, reverse, work.states.data(), VelocityAfter(config, stored, v_final, segment, n), out,
+            work.gf.data(), work.extra_x, work.extra_v, work.partials[t], team, t);
     team.Sync();
   }
+}
+
+// The same for a small lattice on two threads: one replays segment s - 1 while the
+// other runs the reverse pass over segment s (double-buffered states).
+template <typename T>
+void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored,
+                       const T* v_final, const Cotangents<T>& out, Workspace<T>& work) {
+  const int64_t n = layout.n;
+  const int64_t segments = (config.steps + config.stride - 1) / config.stride;
+  std::vector<T> second(work.states.size());
+  T* buffers[2] = {work.states.data(), second.data()};
+  int64_t lengths[2] = {0, 0};
+  Team pair(2);
+  pair.Launch([&](int t) {
+    Team solo(1);
+    if (t == 1) {  // the replayer
+      for (int64_t j = 0; j < segments; ++j) {
+        lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.x.data(), work.v.data(),
+                                work.force.data(), work.extra, buffers[j % 2], solo, 0);
+        pair.Sync();
+      }
+      return;
+    }
+    pair.Sync();
+    for (int64_t j = 0; j < segments; ++j) {
+      const Config reverse{lengths[j % 2], config.flags, config.dt, 1};
+      Reverse(layout, p, reverse, buffers[j % 2], VelocityAfter(config, stored, v_final, segments - 1 - j, n), out,
+              work.gf.data(), work.extra_x, work.extra_v, work.partials[0], solo, 0);
+      if (j + 1 < segments) pair.Sync();
+    }
+  });
 }
 
 template <ffi::DataType DT>
@@ -582,8 +672,8 @@ Inputs<ffi::NativeType<DT>> Member(int64_t i, int64_t batch, ffi::Buffer<DT> res
 // Runs work(member, workspace, team, thread) for every member: members split over the
 // threads when batched (each alone), else one member by the whole team.
 template <typename T, typename Work>
-void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work) {
-  const int threads = Threads(batch, layout);
+void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work, int threads = 0) {
+  if (threads == 0) threads = Threads(batch, layout);
   Team pool(threads);
   if (batch > 1) {
     pool.Launch([&](int t) {
@@ -619,7 +709,9 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
   std::copy(v.typed_data(), v.typed_data() + v.element_count(), v_out->typed_data());
   ForMembers<T>(batch, layout, 0, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
     const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
-    Simulate(layout, p, config, x_out->typed_data() + i * 3 * n, v_out->typed_data() + i * 3 * n,
+    if (t == 0) work.Pad(layout, p, false);
+    team.Sync();
+    Simulate(layout, work.Padded(p), config, x_out->typed_data() + i * 3 * n, v_out->typed_data() + i * 3 * n,
              work.force.data(), work.extra, store ? stored->typed_data() + i * per_member : nullptr, team, t);
   });
   return ffi::Error::Success();
@@ -651,6 +743,9 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
     std::fill((*buffer)->typed_data(), (*buffer)->typed_data() + (*buffer)->element_count(), T(0));
   }
   if (steps == 0) return ffi::Error::Success();
+  // one small lattice: replay and reverse pass on two threads at once
+  const bool pipelined = getenv("JS_PIPE") && batch == 1 && Threads(batch, layout) == 1 && HardwareThreads() > 1 && steps > stride;
+  const int backward_threads = getenv("JS_SPLIT") && batch == 1 ? 2 : 0;
   ForMembers<T>(batch, layout, std::min(stride, steps), [&](int64_t i, Workspace<T>& work, Team& team, int t) {
     auto at = [&](ffi::ResultBuffer<DT>& buffer) {
       return buffer->typed_data() + i * (buffer->element_count() / batch);
@@ -659,16 +754,25 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
                             at(out_cdm),     at(out_gravity), at(out_kg), at(out_kgd), at(out_height)};
     const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
     work.partials[t] = Partials<T>();
-    BackwardMember(layout, p, config, stored.typed_data() + i * per_member, v_final.typed_data() + i * 3 * n, out,
-                   work, team, t);
+    if (t == 0) work.Pad(layout, p, true);
+    team.Sync();
+    const Inputs<T> padded = work.Padded(p);
+    const Cotangents<T> inner = work.Padded(out, layout.padded);
+    const T* states = stored.typed_data() + i * per_member;
+    if (pipelined) {
+      BackwardPipelined(layout, padded, config, states, v_final.typed_data(), inner, work);
+    } else {
+      BackwardMember(layout, padded, config, states, v_final.typed_data() + i * 3 * n, inner, work, team, t);
+    }
     team.Sync();
     if (t == 0) {
+      work.Unpad(layout, out);
       for (const Partials<T>& sums : work.partials) {
         for (int k = 0; k < 3; ++k) out.gravity[k] += sums.gravity[k];
         out.height[0] += sums.height;
       }
     }
-  });
+  }, backward_threads);
   return ffi::Error::Success();
 }
 
