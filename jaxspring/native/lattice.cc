@@ -4,25 +4,27 @@
 //
 // Layout (jaxspring's grid layout): positions and velocities are (3, N), component
 // first, the N particles in C order of the lattice (up to 3 axes). The springs of a
-// family with lattice offset o join every particle a to a + shift(o); runs of them are
-// contiguous in particles and in spring index, so the inner loops read and write
-// unit-stride arrays and vectorise. Spring forces of a run go to a scratch row first
-// and are then added to a (+) and b (-) in two separate loops, which keeps those
-// loops free of the dependence a run with a small shift would otherwise carry.
+// family with lattice offset o join every particle a to b = a + shift(o); each family
+// runs as one unit-stride loop over a range of a (see `Layout`), which vectorises.
+// Spring forces go to a scratch row first and are then added to a (+) and b (-) in two
+// separate loops, free of the dependence a small shift would otherwise carry.
 //
 // Per step, with F the total force (same formulas and summation order as
 // jaxspring/_forces.py): v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
-// The forward call can also return every step's starting state (the residuals of
-// the backward call, which then never re-runs the forward pass).
 //
-// Threads: a batch (vmap) is split over threads by members; one large lattice is
-// split by particle ranges, each thread adding its springs' forces into a private
-// buffer that the owner of the particles reduces (two barriers per step).
+// Reverse mode: the forward call can return the state every `stride` steps; the
+// backward call replays one such segment at a time, keeping its states, and runs the
+// exact reverse pass over it (memory ~2 sqrt(steps) states for stride ~sqrt(steps)).
+//
+// Threads: a batch (vmap) is split over threads by members. One large lattice is split
+// by particle ranges, each thread adding its springs' forces into a private buffer that
+// the owner of the particles reduces (two barriers per step). One small lattice runs
+// forward on one thread; its backward call replays the next segment on a second
+// thread while the first runs the reverse pass.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
-#include <cstdlib>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -672,8 +674,8 @@ Inputs<ffi::NativeType<DT>> Member(int64_t i, int64_t batch, ffi::Buffer<DT> res
 // Runs work(member, workspace, team, thread) for every member: members split over the
 // threads when batched (each alone), else one member by the whole team.
 template <typename T, typename Work>
-void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work, int threads = 0) {
-  if (threads == 0) threads = Threads(batch, layout);
+void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work) {
+  const int threads = Threads(batch, layout);
   Team pool(threads);
   if (batch > 1) {
     pool.Launch([&](int t) {
@@ -744,8 +746,7 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
   }
   if (steps == 0) return ffi::Error::Success();
   // one small lattice: replay and reverse pass on two threads at once
-  const bool pipelined = getenv("JS_PIPE") && batch == 1 && Threads(batch, layout) == 1 && HardwareThreads() > 1 && steps > stride;
-  const int backward_threads = getenv("JS_SPLIT") && batch == 1 ? 2 : 0;
+  const bool pipelined = batch == 1 && Threads(batch, layout) == 1 && HardwareThreads() > 1 && steps > stride;
   ForMembers<T>(batch, layout, std::min(stride, steps), [&](int64_t i, Workspace<T>& work, Team& team, int t) {
     auto at = [&](ffi::ResultBuffer<DT>& buffer) {
       return buffer->typed_data() + i * (buffer->element_count() / batch);
@@ -772,7 +773,7 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
         out.height[0] += sums.height;
       }
     }
-  }, backward_threads);
+  });
   return ffi::Error::Success();
 }
 
