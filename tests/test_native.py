@@ -49,7 +49,7 @@ def relative(a, b):
 
 def test_forces_and_their_vjp_match(scenes):
     for name, model, params, state in cases(scenes):
-        native = model.replace(backend="native")
+        native = model.replace(backend="native", lattice=None)  # the spring kernel of any topology
         key = jax.random.PRNGKey(1)
         x = state.x + 0.05 * jax.random.normal(key, state.x.shape)
         v = jax.random.normal(jax.random.PRNGKey(2), state.x.shape)
@@ -120,3 +120,97 @@ def test_missing_kernel_falls_back_with_one_notice(monkeypatch, capsys):
         assert len(err) == 1 and "native kernel is not built" in err[0]
     finally:
         _native.available.cache_clear()  # found again once the patch is undone
+
+
+# --- the lattice kernel: whole semi-implicit Euler steps of lattice scenes ---------------
+
+
+def lattice_case(scene, seed=0, drop=0.0):
+    """A lattice scene with per-spring ks, per-particle cd (and kg), moving, optionally lowered."""
+    rng = np.random.default_rng(seed)
+    model, params, state = scene.model, scene.params, scene.state
+    changes = {"ks": params.ks * jnp.asarray(rng.uniform(0.7, 1.3, model.spring_count))}
+    changes["cd"] = params.cd * jnp.asarray(rng.uniform(0.5, 1.5, model.particle_count))
+    if params.kg is not None:
+        changes["kg"] = params.kg * jnp.asarray(rng.uniform(0.8, 1.2, model.particle_count))
+    v = state.v + 0.3 * jnp.asarray(rng.normal(size=state.v.shape)) * (~model.pinned)[:, None]
+    state = js.State(x=state.x - jnp.array([0.0, drop, 0.0]), v=v)
+    return model, params.replace(**changes), state
+
+
+def assert_gradients_match(loss, native, plain, args, name):
+    """Gradients of loss(model, *args) wrt args and the model's float leaves, to 1e-11 of the largest."""
+    g_native = jax.grad(loss, argnums=tuple(range(len(args) + 1)), allow_int=True)(native, *args)
+    g_plain = jax.grad(loss, argnums=tuple(range(len(args) + 1)), allow_int=True)(plain, *args)
+    pairs = []
+    for a, b in zip(jax.tree_util.tree_leaves(g_native), jax.tree_util.tree_leaves(g_plain)):
+        if np.asarray(b).dtype.kind == "f":
+            pairs.append((np.asarray(a), np.asarray(b)))
+    scale = max(float(np.max(np.abs(b))) for _, b in pairs)
+    assert scale > 0
+    for a, b in pairs:
+        assert float(np.max(np.abs(a - b))) <= 1e-11 * scale, name
+
+
+def test_lattice_kernel_matches_jax_through_ground_contact(scenes):
+    """Jelly lowered onto the ground (contact from the first steps) and the pinned cloth:
+    trajectories to 1e-12, gradients wrt every parameter, the initial state and the
+    model's masses and rest lengths to 1e-11 (float64)."""
+    for name, drop, steps in (("jelly", 1.97, 150), ("cloth", 0.0, 60)):
+        model, params, state = lattice_case(scenes[name], drop=drop)
+        native = model.replace(backend="native")
+        assert native.native_lattice and native.grid
+        a = js.rollout(native, params, state, steps, steps // 5)
+        b = js.rollout(model, params, state, steps, steps // 5)
+        assert relative(a.x, b.x) < 1e-12 and relative(a.v, b.v) < 1e-12, name
+        if name == "jelly":  # the ground is in play
+            assert float(jnp.min(a.x[..., 1])) < 0.0
+
+        def loss(m, p, s):
+            t = js.rollout(m, p, s, steps, steps // 5)
+            return jnp.sum(jnp.sin(3.0 * t.x)) + jnp.sum(t.v[-1] ** 2)
+
+        assert_gradients_match(loss, native, model, (params, state), name)
+
+
+def test_lattice_kernel_batches_segments_and_checkpoints(scenes):
+    model, params, state = lattice_case(scenes["chain"], seed=1)
+    native = model.replace(backend="native")
+    ks = params.ks[None] * jnp.array([0.8, 1.0, 1.3])[:, None]
+
+    def final(m, k, x0):
+        return js.rollout(m, params.replace(ks=k), state.replace(x=x0), 37, 37).x[-1]
+
+    x0 = state.x[None] + 0.01 * jnp.arange(3.0)[:, None, None]
+    batched = jax.vmap(lambda k, x: final(native, k, x))(ks, x0)
+    for i in range(3):
+        assert relative(batched[i], final(model, ks[i], x0[i])) < 1e-12
+    # 37 steps: segments of 7 with a shorter last one, in every backward variant
+    loss = lambda k, m: jnp.sum(final(m, k, state.x) ** 2)  # noqa: E731
+    g_batched = jax.vmap(jax.grad(loss), in_axes=(0, None))(ks, native)
+    for i in range(3):
+        assert relative(g_batched[i], jax.grad(loss)(ks[i], model)) < 1e-11
+    for checkpoint in ("sqrt", 5):
+        g = jax.grad(lambda k: jnp.sum(js.rollout(native, params.replace(ks=k), state, 37, 1, checkpoint).x ** 2))
+        h = jax.grad(lambda k: jnp.sum(js.rollout(model, params.replace(ks=k), state, 37, 1).x ** 2))
+        assert relative(g(params.ks), h(params.ks)) < 1e-11
+
+
+def test_lattice_kernel_threads_on_a_large_lattice():
+    """A 130 x 130 cloth (67k springs) splits over threads: same numbers, float64 and float32."""
+    from jaxspring._speed import cloth_of_size
+
+    scene = cloth_of_size((130, 130))
+    model, params, state = scene.model, scene.params, scene.state
+    native = model.replace(backend="native")
+    state = state.replace(v=0.1 * jnp.asarray(np.random.default_rng(2).normal(size=state.v.shape)))
+    assert relative(js.rollout(native, params, state, 6, 3).x, js.rollout(model, params, state, 6, 3).x) < 1e-12
+
+    def loss(m, p, s):
+        return jnp.sum(js.rollout(m, p, s, 6, 6).x[-1] ** 2)
+
+    assert_gradients_match(loss, native, model, (params, state), "130x130")
+    single = js.State(x=state.x.astype(jnp.float32), v=state.v.astype(jnp.float32))
+    a = js.rollout(native, params, single, 20, 20).x
+    b = js.rollout(model, params, state, 20, 20).x
+    assert a.dtype == jnp.float32 and float(jnp.max(jnp.abs(a - b))) < 1e-4
