@@ -25,6 +25,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -689,6 +690,175 @@ void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work)
   pool.Launch([&](int t) { work(0, space, pool, t); });
 }
 
+// --- Batches: members side by side ---------------------------------------------------
+// A forward call on a batch runs groups of Lanes<T>() members together, the member
+// innermost (arrays (3, n, lanes)): every spring and particle update is then one aligned
+// vector operation across the group, with no scratch rows (a spring's two particles are
+// different, so their lanes never overlap). Threads take groups.
+
+template <typename T>
+constexpr int64_t Lanes() {
+  return 64 / sizeof(T);  // one 64-byte vector: 16 float32 or 8 float64 members
+}
+
+template <typename T>
+struct Group {  // the inputs and state of Lanes<T>() members, member innermost
+  std::vector<T> x, v, force, rest, ks, kd, mass, free, cdm, kg, kgd, gravity, height;
+};
+
+template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
+void GroupParticles(Group<T>& g, int64_t n, T dt) {
+  constexpr int64_t L = Lanes<T>();
+  const int64_t nl = n * L;
+  T* x = g.x.data();
+  T* v = g.v.data();
+  T* f = g.force.data();
+  const T* mass = g.mass.data();
+  const T* free = g.free.data();
+  const T* cdm = g.cdm.data();
+  const T* kg = g.kg.data();
+  const T* kgd = g.kgd.data();
+  const T* gravity = g.gravity.data();
+  const T* height = g.height.data();
+  for (int64_t q = 0; q < n; ++q) {
+    JAXSPRING_INDEPENDENT
+    for (int64_t l = 0; l < L; ++l) {
+      const int64_t e = q * L + l;
+      T a0 = f[e], a1 = f[nl + e], a2 = f[2 * nl + e];
+      f[e] = T(0);
+      f[nl + e] = T(0);
+      f[2 * nl + e] = T(0);
+      const T w0 = v[e], w1 = v[nl + e], w2 = v[2 * nl + e], m = mass[e];
+      if (kDragOn) {
+        const T c = -cdm[e] * std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
+        a0 += c * w0;
+        a1 += c * w1;
+        a2 += c * w2;
+      }
+      if (kGravityOn) {
+        a0 += m * gravity[l];
+        a1 += m * gravity[L + l];
+        a2 += m * gravity[2 * L + l];
+      }
+      if (kGroundOn) {
+        const T depth = height[l] - x[nl + e];
+        a1 += depth > 0 ? kg[e] * depth - kgd[e] * w1 : T(0);
+      }
+      const bool on = free[e] != T(0);
+      const T n0 = on ? w0 + dt * a0 / m : T(0), n1 = on ? w1 + dt * a1 / m : T(0), n2 = on ? w2 + dt * a2 / m : T(0);
+      v[e] = n0;
+      v[nl + e] = n1;
+      v[2 * nl + e] = n2;
+      x[e] += dt * n0;
+      x[nl + e] += dt * n1;
+      x[2 * nl + e] += dt * n2;
+    }
+  }
+}
+
+template <typename T>
+void SimulateGroup(const Layout& layout, const Config& config, Group<T>& g) {
+  constexpr int64_t L = Lanes<T>();
+  const int64_t n = layout.n, nl = n * L;
+  const T dt = static_cast<T>(config.dt);
+  using Particles = void (*)(Group<T>&, int64_t, T);
+  static const Particles table[8] = {
+      GroupParticles<T, false, false, false>, GroupParticles<T, true, false, false>,
+      GroupParticles<T, false, true, false>,  GroupParticles<T, true, true, false>,
+      GroupParticles<T, false, false, true>,  GroupParticles<T, true, false, true>,
+      GroupParticles<T, false, true, true>,   GroupParticles<T, true, true, true>};
+  const Particles particles = table[(config.flags & kDrag ? 1 : 0) + (config.flags & kGravity ? 2 : 0) +
+                                   (config.flags & kGround ? 4 : 0)];
+  const T* x = g.x.data();
+  const T* v = g.v.data();
+  T* f = g.force.data();
+  const T* rest = g.rest.data();
+  const T* ks = g.ks.data();
+  const T* kd = g.kd.data();
+  for (int64_t step = 0; step < config.steps; ++step) {
+    for (size_t family = 0; family < layout.runs.size(); ++family) {
+      const int64_t shift = layout.shift[family];
+      for (const Run& run : layout.runs[family]) {
+        for (int64_t j = 0; j < run.len; ++j) {
+          const int64_t a = (run.a + j) * L, b = (run.a + j + shift) * L, k = (run.k + j) * L;
+          JAXSPRING_INDEPENDENT
+          for (int64_t l = 0; l < L; ++l) {
+            const T d0 = x[b + l] - x[a + l], d1 = x[nl + b + l] - x[nl + a + l],
+                    d2 = x[2 * nl + b + l] - x[2 * nl + a + l];
+            const T w0 = v[b + l] - v[a + l], w1 = v[nl + b + l] - v[nl + a + l],
+                    w2 = v[2 * nl + b + l] - v[2 * nl + a + l];
+            const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+            const T inv = T(1) / (length > 0 ? length : T(1));
+            const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
+            const T m = ks[k + l] * (length - rest[k + l]) + kd[k + l] * (w0 * u0 + w1 * u1 + w2 * u2);
+            const T f0 = m * u0, f1 = m * u1, f2 = m * u2;
+            f[a + l] += f0;
+            f[nl + a + l] += f1;
+            f[2 * nl + a + l] += f2;
+            f[b + l] -= f0;
+            f[nl + b + l] -= f1;
+            f[2 * nl + b + l] -= f2;
+          }
+        }
+      }
+    }
+    particles(g, n, dt);
+  }
+}
+
+// Forward steps of a batch in groups (no stored states): members first .. first + L - 1
+// (the last member repeated to fill a group) in, positions and velocities out.
+template <typename T>
+void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch,
+                   const std::function<Inputs<T>(int64_t)>& member, T* x, T* v) {
+  constexpr int64_t L = Lanes<T>();
+  const int64_t n = layout.n, groups = (batch + L - 1) / L;
+  const int threads = static_cast<int>(std::min<int64_t>(HardwareThreads(), groups));
+  Team pool(threads);
+  pool.Launch([&](int t) {
+    Group<T> g;
+    for (auto* buffer : {&g.x, &g.v, &g.force}) buffer->assign(3 * n * L, T(0));
+    for (auto* buffer : {&g.rest, &g.ks, &g.kd}) buffer->assign(layout.padded * L, T(0));
+    for (auto* buffer : {&g.mass, &g.free, &g.cdm, &g.kg, &g.kgd}) buffer->assign(n * L, T(0));
+    g.gravity.assign(3 * L, T(0));
+    g.height.assign(L, T(0));
+    for (int64_t group = t; group < groups; group += threads) {
+      for (int64_t l = 0; l < L; ++l) {  // gather the members, lane l
+        const int64_t i = std::min(group * L + l, batch - 1);
+        const Inputs<T> p = member(i);
+        for (int64_t c = 0; c < 3 * n; ++c) {
+          g.x[c * L + l] = x[i * 3 * n + c];
+          g.v[c * L + l] = v[i * 3 * n + c];
+        }
+        for (const Run& r : layout.valid) {
+          for (int64_t j = 0; j < r.len; ++j) {
+            g.rest[(r.a + j) * L + l] = p.rest[r.k + j];
+            g.ks[(r.a + j) * L + l] = p.ks[r.k + j];
+            g.kd[(r.a + j) * L + l] = p.kd[r.k + j];
+          }
+        }
+        for (int64_t q = 0; q < n; ++q) {
+          g.mass[q * L + l] = p.mass[q];
+          g.free[q * L + l] = p.free[q];
+          g.cdm[q * L + l] = p.cdm[q];
+          g.kg[q * L + l] = p.kg[q];
+          g.kgd[q * L + l] = p.kgd[q];
+        }
+        for (int c = 0; c < 3; ++c) g.gravity[c * L + l] = p.gravity[c];
+        g.height[l] = p.height[0];
+      }
+      SimulateGroup(layout, config, g);
+      for (int64_t l = 0; l < L && group * L + l < batch; ++l) {  // scatter them back
+        const int64_t i = group * L + l;
+        for (int64_t c = 0; c < 3 * n; ++c) {
+          x[i * 3 * n + c] = g.x[c * L + l];
+          v[i * 3 * n + c] = g.v[c * L + l];
+        }
+      }
+    }
+  });
+}
+
 template <ffi::DataType DT>
 ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, ffi::Buffer<DT> ks,
                    ffi::Buffer<DT> kd, ffi::Buffer<DT> mass, ffi::Buffer<DT> free, ffi::Buffer<DT> cdm,
@@ -709,6 +879,13 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
   const Config config{steps, flags, dt, stride};
   std::copy(x.typed_data(), x.typed_data() + x.element_count(), x_out->typed_data());
   std::copy(v.typed_data(), v.typed_data() + v.element_count(), v_out->typed_data());
+  if (batch > 1 && !store) {
+    AdvanceGroups<T>(
+        layout, config, batch,
+        [&](int64_t i) { return Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height); },
+        x_out->typed_data(), v_out->typed_data());
+    return ffi::Error::Success();
+  }
   ForMembers<T>(batch, layout, 0, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
     const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
     if (t == 0) work.Pad(layout, p, false);
