@@ -701,6 +701,11 @@ constexpr int64_t Lanes() {
   return 64 / sizeof(T);  // one 64-byte vector: 16 float32 or 8 float64 members
 }
 
+// A group's working set; above kGroupBytes (measured: a 60 x 60 cloth) it leaves the
+// caches and members one by one (each thread its own) run faster.
+constexpr int64_t kGroupBytes = 4 << 20;
+inline int64_t GroupBytes(const Layout& layout) { return 64 * (14 * layout.n + 3 * layout.padded); }
+
 template <typename T>
 struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   std::vector<T> x, v, force, rest, ks, kd, mass, free, cdm, kg, kgd, gravity, height;
@@ -879,7 +884,7 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
   const Config config{steps, flags, dt, stride};
   std::copy(x.typed_data(), x.typed_data() + x.element_count(), x_out->typed_data());
   std::copy(v.typed_data(), v.typed_data() + v.element_count(), v_out->typed_data());
-  if (batch > 1 && !store) {
+  if (batch > 1 && !store && GroupBytes(layout) <= kGroupBytes) {
     AdvanceGroups<T>(
         layout, config, batch,
         [&](int64_t i) { return Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height); },
