@@ -433,11 +433,17 @@ def _cmd_fit(args):
         leave=False,
     )
 
+    # SIGINT/SIGTERM stop the fit at the next iteration (a flag, so no library code in
+    # between can swallow the interrupt); a second signal stops it at once.
+    interrupted = []
+
     def on_iteration(current, stages):
         snapshot = copy.copy(current)
         snapshot.loss, snapshot.stage_of_iteration = list(current.loss), list(current.stage_of_iteration)
         snapshot.values = {n: list(v) for n, v in current.values.items()}
         latest[0] = snapshot
+        if interrupted:  # saved (with this iteration) by the handler below
+            raise KeyboardInterrupt
         if current.loss:
             values = " ".join(f"{n}={float(np.mean(np.exp(np.asarray(current.theta[n])))):.5g}" for n in names)
             bar.set_description(f"fit {experiment.name} stage {min(current.stage, len(stages) - 1) + 1}/{len(stages)}")
@@ -448,9 +454,11 @@ def _cmd_fit(args):
             save_fit(out, config, names, initial, snapshot)
 
     def terminate(signum, frame):
-        raise KeyboardInterrupt
+        if interrupted:
+            raise KeyboardInterrupt
+        interrupted.append(signum)
 
-    previous = signal.signal(signal.SIGTERM, terminate)
+    previous = {sig: signal.signal(sig, terminate) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         with bar:
             result = fit_batch(
@@ -468,7 +476,8 @@ def _cmd_fit(args):
             )
         return 130
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     plot = plot_fit(result, out.with_suffix(".png"))
     print(result.table())
     print(f"wrote {out} and {plot}")
