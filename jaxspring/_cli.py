@@ -79,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--optimizer", choices=["lbfgs", "adam"], help="optimizer (default: the experiment's, else lbfgs)")
     fit.add_argument("--strategy", choices=["auto", "direct", "curriculum", "shooting"], help="long-horizon strategy")
     fit.add_argument("--iterations", type=int, help="most iterations per stage")
+    fit.add_argument("--backend", choices=["jax", "native"], help="simulation backend (default: the experiment's)")
     fit.add_argument("--noise", type=float, help="relative observation noise of a synthetic target")
     fit.add_argument("--checkpoint-every", type=int, default=5, help="iterations between checkpoints (default 5)")
     fit.add_argument("--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)")
@@ -371,6 +372,8 @@ def _fit_problem(args):
         experiment = Experiment(name=Path(args.target).stem, scene=recorded, params=(), init={}, settings=FitSettings())
     else:
         raise InputError("fit", "nothing to fit", "give an EXPERIMENT.toml or --target FILE.h5")
+    if args.backend:
+        experiment = experiment.replace(scene=experiment.scene.with_backend(args.backend))
     if args.params:
         experiment = experiment.replace(params=tuple(p.strip() for p in args.params.split(",") if p.strip()))
     if not experiment.params:
@@ -398,6 +401,7 @@ def _fit_problem(args):
         "save_every": experiment.save_every,
         "seed": experiment.seed,
         "dtype": args.dtype,
+        "backend": experiment.scene.model.backend,
     }
     return experiment, observations, experiment.params, init, settings, config
 

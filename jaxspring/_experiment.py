@@ -144,6 +144,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         long_horizon_steps=fit_table.take("long_horizon_steps", _count, default=defaults.long_horizon_steps),
         tolerance=fit_table.take("tolerance", _number, default=defaults.tolerance),
     )
+    backend = fit_table.take("backend", _string)
     fit_table.finish()
     top.finish()
     try:
@@ -152,6 +153,11 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         raise exc.within("", "fit") from None
     if true_values:
         scene.with_params(**true_values)  # validates names, shapes and signs
+    if backend is not None:
+        try:
+            scene = scene.with_backend(backend)
+        except InputError as exc:
+            raise exc.within("", "fit") from None
     return Experiment(
         name=name,
         scene=scene,
