@@ -18,8 +18,8 @@ Backward formulas, per spring, with cf = ct_a - ct_b (the force's cotangent):
 from __future__ import annotations
 
 import ctypes
-import math
 import functools
+import math
 import sys
 from pathlib import Path
 

@@ -166,7 +166,7 @@ def test_lattice_kernel_matches_jax_through_ground_contact(scenes):
         if name == "jelly":  # the ground is in play
             assert float(jnp.min(a.x[..., 1])) < 0.0
 
-        def loss(m, p, s):
+        def loss(m, p, s, steps=steps):
             t = js.rollout(m, p, s, steps, steps // 5)
             return jnp.sum(jnp.sin(3.0 * t.x)) + jnp.sum(t.v[-1] ** 2)
 
@@ -191,7 +191,7 @@ def test_lattice_kernel_batches_segments_and_checkpoints(scenes):
     for i in range(3):
         assert relative(g_batched[i], jax.grad(loss)(ks[i], model)) < 1e-11
     for checkpoint in ("sqrt", 5):
-        g = jax.grad(lambda k: jnp.sum(js.rollout(native, params.replace(ks=k), state, 37, 1, checkpoint).x ** 2))
+        g = jax.grad(lambda k, c=checkpoint: jnp.sum(js.rollout(native, params.replace(ks=k), state, 37, 1, c).x ** 2))
         h = jax.grad(lambda k: jnp.sum(js.rollout(model, params.replace(ks=k), state, 37, 1).x ** 2))
         assert relative(g(params.ks), h(params.ks)) < 1e-11
 
