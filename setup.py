@@ -1,4 +1,4 @@
-"""Builds the optional native kernel (jaxspring/native/springs.cc) against XLA's FFI headers.
+"""Builds the optional native kernels (jaxspring/native/*.cc) against XLA's FFI headers.
 
 Everything else about the package is in pyproject.toml. If the kernel cannot be built
 (no C++17 compiler), the install still succeeds and jaxspring uses its pure-JAX path.

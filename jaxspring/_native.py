@@ -1,13 +1,18 @@
-"""Native CPU spring kernel (C++ through `jax.ffi`), forward and reverse mode.
+"""Native CPU kernels (C++ through `jax.ffi`), forward and reverse mode.
 
-`jaxspring/native/springs.cc` is compiled by the package build into
+`jaxspring/native/springs.cc` and `lattice.cc` are compiled by the package build into
 `jaxspring/_native_springs*.so` (an optional extension: if it cannot be built the
-install still succeeds). It computes the spring forces of any topology in one pass
-over the springs, and the exact reverse-mode derivative in another; `spring_force`
-wraps them in a `jax.custom_vjp`. Being a custom VJP, it supports reverse mode
-(`grad`, `vjp`) and `vmap`, but not forward mode (`jvp`, `jacfwd`): models with
-backend "native" fall back to the pure-JAX force where jaxspring itself needs forward
-mode (backward Euler's Newton solve, the stability analyser, Gauss-Newton in fitting).
+install still succeeds). Two kernels, each wrapped in a `jax.custom_vjp` whose
+backward is native too:
+
+- `spring_force`: the spring forces of any topology in one pass over the springs,
+  and the exact reverse-mode derivative in another (used inside the JAX step).
+- `lattice_advance`: whole semi-implicit Euler steps of a lattice scene (below).
+
+Being custom VJPs they support reverse mode (`grad`, `vjp`) and `vmap`, but not
+forward mode (`jvp`, `jacfwd`): models with backend "native" fall back to the pure-JAX
+path where jaxspring itself needs forward mode (backward Euler's Newton solve, the
+stability analyser, Gauss-Newton in fitting; `Model.forward_mode`).
 
 Backward formulas, per spring, with cf = ct_a - ct_b (the force's cotangent):
     uc = u . cf;   ct_c = kd uc;   ct_u = m cf + dv ct_c
