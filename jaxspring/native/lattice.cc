@@ -169,6 +169,31 @@ int HardwareThreads() {
   return count;
 }
 
+// One spring's geometry from the positions and velocities (components `stride` apart) of
+// its ends a and b: w = v_b - v_a, inv = 1 / length (1 at length 0), u = d * inv (so d
+// itself at length 0, as safe_direction), extension e = length - rest, closing = w . u.
+template <typename T>
+struct Geometry {
+  T u0, u1, u2, w0, w1, w2, inv, e, closing;
+};
+
+template <typename T>
+inline Geometry<T> SpringGeometry(const T* x, const T* v, int64_t stride, int64_t a, int64_t b, T rest) {
+  const T d0 = x[b] - x[a], d1 = x[stride + b] - x[stride + a], d2 = x[2 * stride + b] - x[2 * stride + a];
+  Geometry<T> g;
+  g.w0 = v[b] - v[a];
+  g.w1 = v[stride + b] - v[stride + a];
+  g.w2 = v[2 * stride + b] - v[2 * stride + a];
+  const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+  g.inv = T(1) / (length > 0 ? length : T(1));
+  g.u0 = d0 * g.inv;
+  g.u1 = d1 * g.inv;
+  g.u2 = d2 * g.inv;
+  g.e = length - rest;
+  g.closing = g.w0 * g.u0 + g.w1 * g.u1 + g.w2 * g.u2;
+  return g;
+}
+
 // Force of springs k.. on their particle a (the one on b is minus it), into out[3][kRun].
 template <typename T>
 void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks, const T* kd,
@@ -178,15 +203,11 @@ void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T*
   T* o2 = out + 2 * kRun;
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
-    const T d0 = x[b + j] - x[a + j], d1 = x[n + b + j] - x[n + a + j], d2 = x[2 * n + b + j] - x[2 * n + a + j];
-    const T w0 = v[b + j] - v[a + j], w1 = v[n + b + j] - v[n + a + j], w2 = v[2 * n + b + j] - v[2 * n + a + j];
-    const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
-    const T inv = T(1) / (length > 0 ? length : T(1));  // u = d at length 0, as safe_direction
-    const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
-    const T m = ks[j] * (length - rest[j]) + kd[j] * (w0 * u0 + w1 * u1 + w2 * u2);
-    o0[j] = m * u0;
-    o1[j] = m * u1;
-    o2[j] = m * u2;
+    const Geometry<T> g = SpringGeometry(x, v, n, a + j, b + j, rest[j]);
+    const T m = ks[j] * g.e + kd[j] * g.closing;
+    o0[j] = m * g.u0;
+    o1[j] = m * g.u1;
+    o2[j] = m * g.u2;
   }
 }
 
@@ -452,12 +473,9 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
   T* ckd = out.kd + k;
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
-    const T d0 = x[b + j] - x[a + j], d1 = x[n + b + j] - x[n + a + j], d2 = x[2 * n + b + j] - x[2 * n + a + j];
-    const T w0 = v[b + j] - v[a + j], w1 = v[n + b + j] - v[n + a + j], w2 = v[2 * n + b + j] - v[2 * n + a + j];
-    const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
-    const T inv = T(1) / (length > 0 ? length : T(1));
-    const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
-    const T e = length - rest[j], closing = w0 * u0 + w1 * u1 + w2 * u2;
+    const Geometry<T> g = SpringGeometry(x, v, n, a + j, b + j, rest[j]);
+    const T u0 = g.u0, u1 = g.u1, u2 = g.u2, w0 = g.w0, w1 = g.w1, w2 = g.w2, inv = g.inv;
+    const T e = g.e, closing = g.closing;
     const T m = ks[j] * e + kd[j] * closing;
     const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j], c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
     const T uc = u0 * c0 + u1 * c1 + u2 * c2;
@@ -788,15 +806,9 @@ void SimulateGroup(const Layout& layout, const Config& config, Group<T>& g) {
           const int64_t a = (run.a + j) * L, b = (run.a + j + shift) * L, k = (run.k + j) * L;
           JAXSPRING_INDEPENDENT
           for (int64_t l = 0; l < L; ++l) {
-            const T d0 = x[b + l] - x[a + l], d1 = x[nl + b + l] - x[nl + a + l],
-                    d2 = x[2 * nl + b + l] - x[2 * nl + a + l];
-            const T w0 = v[b + l] - v[a + l], w1 = v[nl + b + l] - v[nl + a + l],
-                    w2 = v[2 * nl + b + l] - v[2 * nl + a + l];
-            const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
-            const T inv = T(1) / (length > 0 ? length : T(1));
-            const T u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
-            const T m = ks[k + l] * (length - rest[k + l]) + kd[k + l] * (w0 * u0 + w1 * u1 + w2 * u2);
-            const T f0 = m * u0, f1 = m * u1, f2 = m * u2;
+            const Geometry<T> g = SpringGeometry(x, v, nl, a + l, b + l, rest[k + l]);
+            const T m = ks[k + l] * g.e + kd[k + l] * g.closing;
+            const T f0 = m * g.u0, f1 = m * g.u1, f2 = m * g.u2;
             f[a + l] += f0;
             f[nl + a + l] += f1;
             f[2 * nl + a + l] += f2;
