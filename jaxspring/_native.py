@@ -146,11 +146,6 @@ def spring_force(x, v, pairs, rest, ks, kd):
 _DRAG, _GRAVITY, _GROUND = 1, 2, 4
 
 
-def lattice_supported(model) -> bool:
-    """Whether `lattice_advance` can step this model (a lattice stepped by semi-implicit Euler)."""
-    return model.lattice is not None and model.integrator == "semi_implicit_euler"
-
-
 def _lattice_inputs(model, params, dtype):
     """The kernel's parameter arrays, one value per spring / particle, in `dtype`."""
     springs, particles = model.spring_count, model.particle_count

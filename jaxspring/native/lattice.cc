@@ -255,55 +255,50 @@ void Gather(T* target, std::vector<std::vector<T>>& buffers, int64_t n, int64_t 
   }
 }
 
-// Adds drag, gravity and ground to the spring forces in `force` (which it clears) and
-// integrates particles [lo, hi): v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
+// One particle's step: adds drag, gravity and ground to its spring force f[e] (then
+// clears it) and integrates, v' = free ? v + (dt F) / m : 0, x' = x + dt v'. Components
+// are `stride` apart.
+template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
+inline void UpdateParticle(T* x, T* v, T* f, int64_t stride, int64_t e, T m, T free, T cdm, T kg, T kgd, T g0, T g1,
+                           T g2, T height, T dt) {
+  T a0 = f[e], a1 = f[stride + e], a2 = f[2 * stride + e];
+  f[e] = T(0);
+  f[stride + e] = T(0);
+  f[2 * stride + e] = T(0);
+  const T w0 = v[e], w1 = v[stride + e], w2 = v[2 * stride + e];
+  if (kDragOn) {
+    const T c = -cdm * std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
+    a0 += c * w0;
+    a1 += c * w1;
+    a2 += c * w2;
+  }
+  if (kGravityOn) {
+    a0 += m * g0;
+    a1 += m * g1;
+    a2 += m * g2;
+  }
+  if (kGroundOn) {
+    const T depth = height - x[stride + e];
+    a1 += depth > 0 ? kg * depth - kgd * w1 : T(0);
+  }
+  const bool on = free != T(0);
+  const T n0 = on ? w0 + dt * a0 / m : T(0), n1 = on ? w1 + dt * a1 / m : T(0), n2 = on ? w2 + dt * a2 / m : T(0);
+  v[e] = n0;
+  v[stride + e] = n1;
+  v[2 * stride + e] = n2;
+  x[e] += dt * n0;
+  x[stride + e] += dt * n1;
+  x[2 * stride + e] += dt * n2;
+}
+
+// `UpdateParticle` over particles [lo, hi) of one member.
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
 void ParticleStep(const Inputs<T>& p, T* x, T* v, T* force, int64_t n, T dt, T g0, T g1, T g2, T height,
                   int64_t lo, int64_t hi) {
-  T* x0 = x;
-  T* x1 = x + n;
-  T* x2 = x + 2 * n;
-  T* v0 = v;
-  T* v1 = v + n;
-  T* v2 = v + 2 * n;
-  T* f0 = force;
-  T* f1 = force + n;
-  T* f2 = force + 2 * n;
-  const T* mass = p.mass;
-  const T* free = p.free;
-  const T* cdm = p.cdm;
-  const T* kg = p.kg;
-  const T* kgd = p.kgd;
   JAXSPRING_INDEPENDENT
   for (int64_t i = lo; i < hi; ++i) {
-    T a0 = f0[i], a1 = f1[i], a2 = f2[i];
-    f0[i] = T(0);
-    f1[i] = T(0);
-    f2[i] = T(0);
-    const T w0 = v0[i], w1 = v1[i], w2 = v2[i], m = mass[i];
-    if (kDragOn) {
-      const T c = -cdm[i] * std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
-      a0 += c * w0;
-      a1 += c * w1;
-      a2 += c * w2;
-    }
-    if (kGravityOn) {
-      a0 += m * g0;
-      a1 += m * g1;
-      a2 += m * g2;
-    }
-    if (kGroundOn) {
-      const T depth = height - x1[i];
-      a1 += depth > 0 ? kg[i] * depth - kgd[i] * w1 : T(0);
-    }
-    const bool on = free[i] != T(0);
-    const T n0 = on ? w0 + dt * a0 / m : T(0), n1 = on ? w1 + dt * a1 / m : T(0), n2 = on ? w2 + dt * a2 / m : T(0);
-    v0[i] = n0;
-    v1[i] = n1;
-    v2[i] = n2;
-    x0[i] += dt * n0;
-    x1[i] += dt * n1;
-    x2[i] += dt * n2;
+    UpdateParticle<T, kDragOn, kGravityOn, kGroundOn>(x, v, force, n, i, p.mass[i], p.free[i], p.cdm[i], p.kg[i],
+                                                      p.kgd[i], g0, g1, g2, height, dt);
   }
 }
 
@@ -729,52 +724,19 @@ struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   std::vector<T> x, v, force, rest, ks, kd, mass, free, cdm, kg, kgd, gravity, height;
 };
 
+// `UpdateParticle` for every particle of a group (lanes innermost; gravity and ground
+// height per lane).
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
 void GroupParticles(Group<T>& g, int64_t n, T dt) {
   constexpr int64_t L = Lanes<T>();
-  const int64_t nl = n * L;
-  T* x = g.x.data();
-  T* v = g.v.data();
-  T* f = g.force.data();
-  const T* mass = g.mass.data();
-  const T* free = g.free.data();
-  const T* cdm = g.cdm.data();
-  const T* kg = g.kg.data();
-  const T* kgd = g.kgd.data();
   const T* gravity = g.gravity.data();
-  const T* height = g.height.data();
   for (int64_t q = 0; q < n; ++q) {
     JAXSPRING_INDEPENDENT
     for (int64_t l = 0; l < L; ++l) {
       const int64_t e = q * L + l;
-      T a0 = f[e], a1 = f[nl + e], a2 = f[2 * nl + e];
-      f[e] = T(0);
-      f[nl + e] = T(0);
-      f[2 * nl + e] = T(0);
-      const T w0 = v[e], w1 = v[nl + e], w2 = v[2 * nl + e], m = mass[e];
-      if (kDragOn) {
-        const T c = -cdm[e] * std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
-        a0 += c * w0;
-        a1 += c * w1;
-        a2 += c * w2;
-      }
-      if (kGravityOn) {
-        a0 += m * gravity[l];
-        a1 += m * gravity[L + l];
-        a2 += m * gravity[2 * L + l];
-      }
-      if (kGroundOn) {
-        const T depth = height[l] - x[nl + e];
-        a1 += depth > 0 ? kg[e] * depth - kgd[e] * w1 : T(0);
-      }
-      const bool on = free[e] != T(0);
-      const T n0 = on ? w0 + dt * a0 / m : T(0), n1 = on ? w1 + dt * a1 / m : T(0), n2 = on ? w2 + dt * a2 / m : T(0);
-      v[e] = n0;
-      v[nl + e] = n1;
-      v[2 * nl + e] = n2;
-      x[e] += dt * n0;
-      x[nl + e] += dt * n1;
-      x[2 * nl + e] += dt * n2;
+      UpdateParticle<T, kDragOn, kGravityOn, kGroundOn>(g.x.data(), g.v.data(), g.force.data(), n * L, e, g.mass[e],
+                                                        g.free[e], g.cdm[e], g.kg[e], g.kgd[e], gravity[l],
+                                                        gravity[L + l], gravity[2 * L + l], g.height[l], dt);
     }
   }
 }
