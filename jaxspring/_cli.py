@@ -78,6 +78,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--resume", action="store_true", help="continue an interrupted fit from --out")
     fit.add_argument("--optimizer", choices=["lbfgs", "adam"], help="optimizer (default: the experiment's, else lbfgs)")
     fit.add_argument("--strategy", choices=["auto", "direct", "curriculum", "shooting"], help="long-horizon strategy")
+    fit.add_argument(
+        "--ensemble",
+        choices=["auto", "gradient", "ensemble"],
+        help="full-horizon stage: gradient optimiser or smoothed ensemble Gauss-Newton (auto: ensemble with contact)",
+    )
     fit.add_argument("--iterations", type=int, help="most iterations per stage")
     fit.add_argument("--backend", choices=["jax", "native"], help="simulation backend (default: the experiment's)")
     fit.add_argument("--noise", type=float, help="relative observation noise of a synthetic target")
@@ -380,7 +385,9 @@ def _fit_problem(args):
         raise InputError("--params", "no parameters named", "give e.g. --params ks,kd,cd")
     init = {k: v for k, v in experiment.init.items() if k in experiment.params}  # --params may narrow the fit
     init.update(_parse_values(args.init))
-    changes = {k: getattr(args, k) for k in ("optimizer", "strategy", "iterations") if getattr(args, k) is not None}
+    changes = {
+        k: getattr(args, k) for k in ("optimizer", "strategy", "ensemble", "iterations") if getattr(args, k) is not None
+    }
     settings = dataclasses.replace(experiment.settings, **changes).validate()
     if args.noise is not None:
         if args.noise < 0:

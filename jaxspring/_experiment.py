@@ -143,6 +143,8 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         segment_frames=fit_table.take("segment_frames", _count, default=defaults.segment_frames),
         long_horizon_steps=fit_table.take("long_horizon_steps", _count, default=defaults.long_horizon_steps),
         tolerance=fit_table.take("tolerance", _number, default=defaults.tolerance),
+        ensemble=fit_table.take("ensemble", _string, default=defaults.ensemble),
+        ensemble_members=fit_table.take("ensemble_members", _count, default=defaults.ensemble_members),
     )
     backend = fit_table.take("backend", _string)
     fit_table.finish()

@@ -3,8 +3,10 @@
 The fit minimises the mean squared position error over the observed particles and
 frames. Positive parameters are optimised in log space. Long targets are fitted in
 stages: a horizon curriculum (short, then longer) or multiple shooting (short
-segments started from recorded states) followed by a full-horizon polish, so the
-final answer is always the full-horizon least-squares fit.
+segments started from recorded states) followed by a full-horizon stage, so the
+final answer is always a full-horizon least-squares fit. Where contact makes the
+loss rough, that last stage is an ensemble Gauss-Newton on the loss smoothed at the
+scale of the parameters' own uncertainty (see `FitSettings.ensemble`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ from ._state import State
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
 OPTIMIZERS = ("lbfgs", "adam")
 STRATEGIES = ("auto", "direct", "curriculum", "shooting")
+ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
+ENSEMBLE_MAX_PARAMETERS = 8  # scalar values; a Gaussian cloud needs several rollouts per dimension
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +63,15 @@ class FitSettings:
             (at most `polish_iterations`; up to 64 parameter values). Scale-invariant, it
             finishes smooth, badly scaled valleys quickly; off by default because on
             contact-rough losses (the noisy jelly) it does not help.
+        ensemble: how the full-horizon stage runs. "gradient": the optimiser on the loss.
+            "ensemble": Gauss-Newton on the loss smoothed over a Gaussian cloud of parameter
+            values (`ensemble_members` rollouts a step, no gradients), the cloud shrinking to
+            the parameters' standard errors; it steps over the small dips that contact cuts
+            into the loss, where a gradient method stops. "auto" (default): "ensemble" when
+            the target touches the ground and at most `ENSEMBLE_MAX_PARAMETERS` values are
+            fitted, else "gradient".
+        ensemble_members: rollouts per ensemble step (even; at least 4 per fitted value).
+        ensemble_spread: the cloud's initial standard deviation in log-parameter space.
     """
 
     optimizer: str = "lbfgs"
@@ -73,6 +86,9 @@ class FitSettings:
     warmup_step_tolerance: float = 1e-6
     polish: bool = False
     polish_iterations: int = 20
+    ensemble: str = "auto"
+    ensemble_members: int = 32
+    ensemble_spread: float = 0.3
 
     def validate(self):
         if self.optimizer not in OPTIMIZERS:
@@ -81,10 +97,23 @@ class FitSettings:
             )
         if self.strategy not in STRATEGIES:
             raise InputError("strategy", f"unknown strategy {self.strategy!r}", f"use one of {', '.join(STRATEGIES)}")
+        if self.ensemble not in ENSEMBLE_CHOICES:
+            raise InputError(
+                "ensemble", f"unknown choice {self.ensemble!r}", f"use one of {', '.join(ENSEMBLE_CHOICES)}"
+            )
+        if int(self.ensemble_members) < 4 or int(self.ensemble_members) % 2:
+            raise InputError("ensemble_members", "must be an even number >= 4", "set e.g. ensemble_members = 32")
         for name in ("iterations", "segment_frames", "long_horizon_steps", "polish_iterations"):
             if int(getattr(self, name)) < 1:
                 raise InputError(name, "must be >= 1", f"set a positive {name}")
-        for name in ("learning_rate", "clip", "tolerance", "step_tolerance", "warmup_step_tolerance"):
+        for name in (
+            "learning_rate",
+            "clip",
+            "tolerance",
+            "step_tolerance",
+            "warmup_step_tolerance",
+            "ensemble_spread",
+        ):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value > 0):
                 raise InputError(name, "must be a finite number > 0", f"set a positive {name}")
@@ -93,18 +122,25 @@ class FitSettings:
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
-    """One stage of a fit: `kind` "direct" over `frames` frames, or "shooting" with segments of `frames` frames."""
+    """One stage of a fit over `frames` frames.
+
+    `kind`: "direct" (the optimiser on the loss), "shooting" (segments of `frames` frames
+    from recorded states) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
+    """
 
     kind: str
     frames: int
 
 
-def plan_stages(observations: Observations, settings: FitSettings, scene: Scene | None = None) -> list[Stage]:
-    """The stages a fit runs through (see FitSettings.strategy)."""
+def plan_stages(
+    observations: Observations, settings: FitSettings, scene: Scene | None = None, values: int = 1
+) -> list[Stage]:
+    """The stages a fit of `values` scalar parameter values runs through (see FitSettings.strategy, .ensemble)."""
     total = observations.frame_count - 1
     strategy = settings.strategy
+    rough = _touches_ground(scene, observations)
     if strategy == "auto":
-        if observations.steps <= settings.long_horizon_steps and not _touches_ground(scene, observations):
+        if observations.steps <= settings.long_horizon_steps and not rough:
             strategy = "direct"
         else:
             strategy = "shooting" if observations.full else "curriculum"
@@ -115,12 +151,24 @@ def plan_stages(observations: Observations, settings: FitSettings, scene: Scene 
                 "multiple shooting needs full recorded states of every particle",
                 "use curriculum, or observe all particles",
             )
-        segment = min(settings.segment_frames, total)
-        return [Stage("shooting", segment), Stage("direct", total)]
-    if strategy == "curriculum":
+        stages = [Stage("shooting", min(settings.segment_frames, total)), Stage("direct", total)]
+    elif strategy == "curriculum":
         horizons = sorted({max(2, min(total, math.ceil(total * f))) for f in (0.125, 0.25, 0.5, 1.0)})
-        return [Stage("direct", h) for h in horizons]
-    return [Stage("direct", total)]
+        stages = [Stage("direct", h) for h in horizons]
+    else:
+        stages = [Stage("direct", total)]
+    ensemble = settings.ensemble == "ensemble" or (
+        settings.ensemble == "auto" and rough and values <= ENSEMBLE_MAX_PARAMETERS
+    )
+    if ensemble:
+        if values > ENSEMBLE_MAX_PARAMETERS:
+            raise InputError(
+                "ensemble",
+                f"the ensemble stage takes at most {ENSEMBLE_MAX_PARAMETERS} parameter values, not {values}",
+                'fit scalar parameters, or set ensemble = "gradient"',
+            )
+        stages[-1] = Stage("ensemble", total)
+    return stages
 
 
 def _touches_ground(scene: Scene | None, observations: Observations) -> bool:
@@ -166,7 +214,7 @@ def _loss_function(scene: Scene, observations: Observations, names, stage: Stage
     def params_of(theta):
         return base.replace(**{n: jnp.exp(theta[n]) for n in names})
 
-    if stage.kind == "direct":
+    if stage.kind in ("direct", "ensemble"):
         frames = stage.frames
 
         def loss(theta, data):
@@ -221,6 +269,122 @@ def _step_function(loss, settings: FitSettings, data_batched: bool):
     init = jax.jit(jax.vmap(optimizer.init))
     value = jax.jit(jax.vmap(loss, in_axes=(0, 0 if data_batched else None)))
     return step, init, value
+
+
+def _ensemble_step_function(scene: Scene, observations: Observations, names, stage: Stage, settings, batched, theta):
+    """(step, init) of an ensemble stage, with the signatures of `_step_function`'s.
+
+    Gauss-Newton on the loss smoothed over a cloud of log-parameter values u + A z (z a
+    fixed symmetric set of standard normal points, A the spread). A step rolls out the
+    candidate centre and its cloud in one batch; a linear fit of the cloud's residuals
+    gives the smoothed residual c and Jacobian J, hence the next step
+    -(J^T J + lambda diag)^-1 J^T c (Levenberg-Marquardt: a step is taken when the
+    smoothed loss falls). When the steps become small against the spread (or stop
+    being accepted), the spread is reset to the parameters' standard errors
+    s^2 (J^T J)^-1, shrinking by at most half a level, and the search goes on; the stage
+    ends once the spread is the standard errors. Every step returns the plain loss at
+    the centre, so the history shows the loss the stage minimises in the end.
+    """
+    model, base = scene.model, scene.params
+    particles = jnp.asarray(observations.particles)
+    every, frames, members = observations.save_every, stage.frames, settings.ensemble_members
+    flat, unravel = ravel_pytree({n: theta[n][0] for n in names})
+    size, dtype = flat.shape[0], flat.dtype
+    half = np.random.default_rng(0).standard_normal((members // 2, size))
+    cloud_points = jnp.asarray(np.concatenate([half, -half]), dtype=dtype)
+    tiny = float(jnp.finfo(dtype).tiny)
+
+    def residuals(vector, data):
+        params = base.replace(**{n: jnp.exp(v) for n, v in unravel(vector).items()})
+        start = State(x=data["x0"], v=data["v0"])
+        x = rollout(model, params, start, steps=frames * every, save_every=every).x
+        return (x[1:, particles] - data["x"][1 : frames + 1]).reshape(-1)
+
+    def init(theta_member):
+        eye = jnp.eye(size, dtype=dtype)
+        zero = jnp.zeros((), dtype)
+        return {
+            "spread": settings.ensemble_spread * eye,
+            "damping": jnp.asarray(1e-3, dtype),
+            "fresh": zero + 1,  # the next step evaluates the centre with a new spread
+            "done": zero,
+            "smoothed": zero + jnp.inf,
+            "loss": zero + jnp.inf,
+            "sigma2": zero,
+            "gradient": jnp.zeros(size, dtype),
+            "normal": eye,
+        }
+
+    def single(theta_member, state, data):
+        centre = ravel_pytree({n: theta_member[n] for n in names})[0]
+        fresh = state["fresh"] > 0
+        normal = state["normal"]
+        step = -jnp.linalg.solve(normal + state["damping"] * jnp.diag(jnp.diag(normal)), state["gradient"])
+        step = jnp.where(fresh | ~jnp.all(jnp.isfinite(step)), 0.0, step)
+        candidate = centre + step
+        cloud = candidate + cloud_points @ state["spread"].T
+        r = jax.vmap(residuals, in_axes=(0, None))(jnp.concatenate([candidate[None], cloud]), data)
+        r_centre, r = r[0], r[1:]
+        count = r_centre.shape[0]
+        finite = jnp.all(jnp.isfinite(r), axis=1)
+        weight = finite.astype(dtype)
+        used = jnp.maximum(weight.sum(), 1.0)
+        r = jnp.where(finite[:, None], r, 0.0)
+        mean = weight @ r / used
+        smoothed = weight @ jnp.sum(r**2, axis=1) / (used * count)
+        usable = (weight.sum() >= 0.75 * members) & jnp.all(jnp.isfinite(r_centre))
+        smoothed = jnp.where(usable, smoothed, jnp.inf)
+        offsets = (cloud - weight @ cloud / used) * weight[:, None]
+        slopes = jnp.linalg.solve(offsets.T @ offsets, offsets.T @ ((r - mean) * weight[:, None]))  # J^T, (P, n)
+        accept = usable & (fresh | (smoothed < state["smoothed"]))
+        chosen = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        normal = chosen(slopes @ slopes.T, normal)
+        sigma2 = chosen(r_centre @ r_centre / max(count - size, 1), state["sigma2"])
+        new = {
+            "gradient": chosen(slopes @ mean, state["gradient"]),
+            "normal": normal,
+            "sigma2": sigma2,
+            "smoothed": chosen(smoothed, state["smoothed"]),
+            "loss": chosen(r_centre @ r_centre / count, state["loss"]),
+        }
+        damping = jnp.where(accept, jnp.maximum(state["damping"] / 10, 1e-6), state["damping"] * 10)
+        relative = jnp.linalg.norm(jax.scipy.linalg.solve_triangular(state["spread"], step, lower=True))
+        level_end = ~fresh & ((relative <= 0.1) | (~accept & (damping >= 1e3)))  # small steps left, or none
+        # The standard errors' square root s (J^T J)^-1/2 and the spread's axes measured in it.
+        # A level halves the spread (in the standard errors' shape) until it is the standard
+        # errors; where the cloud's residuals are linear in the parameters to 1% (the loss is
+        # smooth at this scale: no dips to step over) it goes straight there. The spread never
+        # exceeds its start; the stage ends when it is within 10% of the standard errors or
+        # cannot shrink further (a parameter the data barely determine).
+        eigenvalues, vectors = jnp.linalg.eigh(normal)
+        eigenvalues = jnp.maximum(eigenvalues, 1e-12 * eigenvalues.max() + tiny)
+        noise = jnp.sqrt(jnp.maximum(sigma2, tiny))
+        posterior = (vectors * (noise / jnp.sqrt(eigenvalues))) @ vectors.T
+        whiten = (vectors * (jnp.sqrt(eigenvalues) / noise)) @ vectors.T
+        sizes = jnp.linalg.svd(whiten @ state["spread"], compute_uv=False)
+        fitted = offsets @ slopes
+        nonlinear = jnp.sum(((r - mean) * weight[:, None] - fitted) ** 2) / jnp.maximum(jnp.sum(fitted**2), tiny)
+        shrunk = posterior * jnp.where(nonlinear < 1e-2, 1.0, jnp.maximum(1.0, sizes.min() / 2))
+        shrunk = shrunk * jnp.minimum(1.0, settings.ensemble_spread / jnp.linalg.norm(shrunk, 2))
+        stalled = jnp.linalg.norm(shrunk, 2) >= 0.9 * jnp.linalg.norm(state["spread"], 2)
+        finished = level_end & ((sizes.max() <= 1.1) | stalled)
+        failed_start = fresh & ~usable  # the cloud reaches unstable values: halve it and evaluate again
+        spread = jnp.where(level_end & ~finished, shrunk, state["spread"])
+        spread = jnp.where(failed_start, spread / 2, spread)
+        new.update(
+            spread=spread,
+            damping=jnp.where(level_end, jnp.asarray(1e-3, dtype), damping),
+            fresh=(level_end & ~finished) | failed_start,
+            done=finished | (state["done"] > 0),
+        )
+        new = {k: jnp.asarray(v, dtype) for k, v in new.items()}
+        value = jnp.where(fresh, new["loss"], state["loss"])
+        theta_new = {n: jnp.where(new["done"] > 0, theta_member[n], v) for n, v in unravel(candidate).items()}
+        theta_new = {n: jnp.where(accept & (state["done"] == 0), theta_new[n], theta_member[n]) for n in names}
+        return theta_new, new, value
+
+    step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if batched else None)))
+    return step, jax.jit(jax.vmap(init))
 
 
 @dataclasses.dataclass
@@ -416,8 +580,8 @@ def fit_batch(
         data = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[_target_data(o) for o in observations])
     else:
         data = _target_data(reference)
-    stages = plan_stages(reference, settings, scene)
     present = scene.params.to_dict()
+    stages = plan_stages(reference, settings, scene, values=sum(int(np.size(present[n])) for n in names))
     start_values = [{n: jnp.asarray(init.get(n, present[n]), dtype=float) for n in names} for init in inits]
     if progress is None:
         theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], present[n].shape)) for s in start_values]) for n in names}
@@ -429,14 +593,18 @@ def fit_batch(
     start_clock = time.perf_counter() - progress.wall_s
     while not progress.done:
         stage = stages[progress.stage]
-        loss = _loss_function(scene, reference, names, stage)
-        step, init_opt, _ = _step_function(loss, settings, batched_data)
+        if stage.kind == "ensemble":
+            step, init_opt = _ensemble_step_function(
+                scene, reference, names, stage, settings, batched_data, progress.theta
+            )
+        else:
+            step, init_opt, _ = _step_function(_loss_function(scene, reference, names, stage), settings, batched_data)
         opt_state = init_opt(progress.theta)
         if progress.optimizer_leaves is not None:
             structure = jax.tree_util.tree_structure(opt_state)
             opt_state = jax.tree_util.tree_unflatten(structure, [jnp.asarray(a) for a in progress.optimizer_leaves])
         final_stage = progress.stage == len(stages) - 1
-        while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage):
+        while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage, opt_state):
             values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
             theta, opt_state, value = step(progress.theta, opt_state, data)
             progress.last_step = np.max(
@@ -466,8 +634,10 @@ def fit_batch(
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify)
 
 
-def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool) -> bool:
+def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state) -> bool:
     """Whether every member has converged in the current stage (see FitSettings)."""
+    if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage says so itself
+        return bool(np.all(np.asarray(opt_state["done"]) > 0))
     if progress.last_step is not None:
         limit = settings.step_tolerance if final_stage else settings.warmup_step_tolerance
         if np.all(progress.last_step <= limit):
@@ -684,7 +854,7 @@ def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:
                 warnings.append(
                     f"{label}: the loss is not smooth near the fit (one standard error away it changes by "
                     f"{change / curvature:.2g} where the quadratic model predicts {predicted / curvature:.2g}, "
-                    "in units of the curvature term); its standard error is unreliable and the fit may sit in a local dip"
+                    "in units of the curvature term); its standard error is unreliable and a gradient fit may stop in a local dip"
                 )
                 break
     return warnings
