@@ -280,9 +280,9 @@ def _ensemble_step_function(scene: Scene, observations: Observations, names, sta
     gives the smoothed residual c and Jacobian J, hence the next step
     -(J^T J + lambda diag)^-1 J^T c (Levenberg-Marquardt: a step is taken when the
     smoothed loss falls). When the steps become small against the spread (or stop
-    being accepted), the spread is reset to the parameters' standard errors
-    s^2 (J^T J)^-1, shrinking by at most half a level, and the search goes on; the stage
-    ends once the spread is the standard errors. Every step returns the plain loss at
+    being accepted), the spread is halved, in the shape of the parameters' standard
+    errors s (J^T J)^-1/2, and the search goes on; the stage ends once the spread is
+    the standard errors. Every step returns the plain loss at
     the centre, so the history shows the loss the stage minimises in the end.
     """
     model, base = scene.model, scene.params
@@ -348,7 +348,7 @@ def _ensemble_step_function(scene: Scene, observations: Observations, names, sta
             "loss": chosen(r_centre @ r_centre / count, state["loss"]),
         }
         damping = jnp.where(accept, jnp.maximum(state["damping"] / 10, 1e-6), state["damping"] * 10)
-        relative = jnp.linalg.norm(jax.scipy.linalg.solve_triangular(state["spread"], step, lower=True))
+        relative = jnp.linalg.norm(jnp.linalg.solve(state["spread"], step))  # the step in units of the spread
         level_end = ~fresh & ((relative <= 0.1) | (~accept & (damping >= 1e3)))  # small steps left, or none
         # The standard errors' square root s (J^T J)^-1/2 and the spread's axes measured in it.
         # A level halves the spread (in the standard errors' shape) until it is the standard
@@ -379,8 +379,8 @@ def _ensemble_step_function(scene: Scene, observations: Observations, names, sta
         )
         new = {k: jnp.asarray(v, dtype) for k, v in new.items()}
         value = jnp.where(fresh, new["loss"], state["loss"])
-        theta_new = {n: jnp.where(new["done"] > 0, theta_member[n], v) for n, v in unravel(candidate).items()}
-        theta_new = {n: jnp.where(accept & (state["done"] == 0), theta_new[n], theta_member[n]) for n in names}
+        moved = unravel(candidate)
+        theta_new = {n: jnp.where(accept & (state["done"] == 0), moved[n], theta_member[n]) for n in names}
         return theta_new, new, value
 
     step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if batched else None)))
