@@ -205,6 +205,24 @@ def _check_names(scene: Scene, names, init: dict | None):
     return names
 
 
+def _misfit_function(scene: Scene, observations: Observations, names, frames: int):
+    """misfit(theta, data): simulated minus observed positions over the first `frames` frames, (frames, M, 3).
+
+    theta maps name -> log value; data holds the target and its initial state.
+    """
+    model, base = scene.model, scene.params
+    particles = jnp.asarray(observations.particles)
+    every = observations.save_every
+
+    def misfit(theta, data):
+        params = base.replace(**{n: jnp.exp(theta[n]) for n in names})
+        start = State(x=data["x0"], v=data["v0"])
+        x = rollout(model, params, start, steps=frames * every, save_every=every).x
+        return x[1:, particles] - data["x"][1 : frames + 1]
+
+    return misfit
+
+
 def _loss_function(scene: Scene, observations: Observations, names, stage: Stage):
     """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
     model, base = scene.model, scene.params
@@ -215,14 +233,8 @@ def _loss_function(scene: Scene, observations: Observations, names, stage: Stage
         return base.replace(**{n: jnp.exp(theta[n]) for n in names})
 
     if stage.kind in ("direct", "ensemble"):
-        frames = stage.frames
-
-        def loss(theta, data):
-            start = State(x=data["x0"], v=data["v0"])
-            x = rollout(model, params_of(theta), start, steps=frames * every, save_every=every).x
-            return jnp.mean((x[1:, particles] - data["x"][1 : frames + 1]) ** 2)
-
-        return loss
+        misfit = _misfit_function(scene, observations, names, stage.frames)
+        return lambda theta, data: jnp.mean(misfit(theta, data) ** 2)
     segment = stage.frames
 
     def loss(theta, data):
@@ -285,20 +297,17 @@ def _ensemble_step_function(scene: Scene, observations: Observations, names, sta
     the standard errors. Every step returns the plain loss at
     the centre, so the history shows the loss the stage minimises in the end.
     """
-    model, base = scene.model, scene.params
-    particles = jnp.asarray(observations.particles)
-    every, frames, members = observations.save_every, stage.frames, settings.ensemble_members
+    members = settings.ensemble_members
     flat, unravel = ravel_pytree({n: theta[n][0] for n in names})
     size, dtype = flat.shape[0], flat.dtype
     half = np.random.default_rng(0).standard_normal((members // 2, size))
     cloud_points = jnp.asarray(np.concatenate([half, -half]), dtype=dtype)
     tiny = float(jnp.finfo(dtype).tiny)
 
+    misfit = _misfit_function(scene, observations, names, stage.frames)
+
     def residuals(vector, data):
-        params = base.replace(**{n: jnp.exp(v) for n, v in unravel(vector).items()})
-        start = State(x=data["x0"], v=data["v0"])
-        x = rollout(model, params, start, steps=frames * every, save_every=every).x
-        return (x[1:, particles] - data["x"][1 : frames + 1]).reshape(-1)
+        return misfit(unravel(vector), data).reshape(-1)
 
     def init(theta_member):
         eye = jnp.eye(size, dtype=dtype)
