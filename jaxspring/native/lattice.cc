@@ -6,21 +6,26 @@
 // first, the N particles in C order of the lattice (up to 3 axes). The springs of a
 // family with lattice offset o join every particle a to b = a + shift(o); each family
 // runs as one unit-stride loop over a range of a (see `Layout`), which vectorises.
-// Spring forces go to a scratch row first and are then added to a (+) and b (-) in two
-// separate loops, free of the dependence a small shift would otherwise carry.
 //
-// Per step, with F the total force (same formulas and summation order as
-// jaxspring/_forces.py): v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
+// No scatter: a step is a spring pass and a particle pass. The spring pass writes each
+// spring's force into its family's row, indexed by its particle a (`Rows`); the particle
+// pass gathers, for every particle i, the sum over families of row(i) - row(i - shift)
+// (+ on a, - on b) and integrates. Both are unit-stride loops free of dependences.
+//
+// Per step, with F the total force (same formulas as jaxspring/_forces.py):
+// v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
 //
 // Reverse mode: the forward call can return the state every `stride` steps; the
 // backward call replays one such segment at a time, keeping its states, and runs the
 // exact reverse pass over it (memory ~2 sqrt(steps) states for stride ~sqrt(steps)).
+// The reverse pass is the same two passes backwards: the particle pass gathers the
+// springs' cotangent rows of the step after and yields the force's cotangent; the spring
+// pass turns it into cotangent rows (for x and v) and parameter cotangents.
 //
 // Threads: a batch (vmap) is split over threads by members. One large lattice is split
-// by particle ranges, each thread adding its springs' forces into a private buffer that
-// the owner of the particles reduces (two barriers per step). One small lattice runs
-// forward on one thread; its backward call replays the next segment on a second
-// thread while the first runs the reverse pass.
+// by particle ranges (two barriers per step). One small lattice runs forward on one
+// thread; its backward call replays the next segment on a second thread while the
+// first runs the reverse pass.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -48,7 +53,7 @@ namespace ffi = xla::ffi;
 
 namespace {
 
-constexpr int64_t kRun = 256;  // longest run of springs processed at once (scratch rows)
+constexpr int64_t kRun = 256;  // longest run of springs or particles processed at once
 constexpr int64_t kDrag = 1, kGravity = 2, kGround = 4;  // flags
 // Springs in one lattice above which a second thread pays for its two barriers a step.
 constexpr int64_t kSpringsForThreads = 60000;
@@ -63,6 +68,7 @@ struct Run {
 // derivatives), and the loops run long and unit-stride instead of row by row.
 struct Layout {
   int64_t n = 0, springs = 0, padded = 0;  // particles, springs, springs with padding
+  int64_t margin = 0;                      // the largest |shift|
   std::vector<int64_t> shift;
   std::vector<std::vector<Run>> runs;  // per family: pieces of its range, k = padded spring index
   std::vector<Run> valid;              // the real springs: a = padded index, k = spring index
@@ -96,7 +102,9 @@ ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const
     }
     std::vector<Run> pieces;  // at most kRun springs each
     for (int64_t j = 0; j < count; j += kRun) pieces.push_back({first + j, layout.padded + j, std::min(kRun, count - j)});
-    layout.shift.push_back((o[0] * s[1] + o[1]) * s[2] + o[2]);
+    const int64_t shift = (o[0] * s[1] + o[1]) * s[2] + o[2];
+    layout.shift.push_back(shift);
+    layout.margin = std::max(layout.margin, std::abs(shift));
     layout.runs.push_back(std::move(pieces));
     layout.padded += count;
     start += r[0] * r[1] * r[2];
@@ -122,6 +130,25 @@ ffi::ErrorOr<const Layout*> MakeLayout(ffi::Span<const int64_t> shape, ffi::Span
   cache.emplace(std::move(key), std::move(stored));
   return layout;
 }
+
+// Per-spring rows of every family, indexed by the spring's particle a: `comps` rows of
+// `width` = n + 2 margin values per family, so that row(i - shift) is in bounds for
+// every particle i. Entries without a spring stay zero.
+template <typename T>
+struct Rows {
+  std::vector<T> data;
+  int64_t width = 0, margin = 0;
+  int comps = 0;
+  void Allocate(const Layout& layout, int components) {
+    comps = components;
+    margin = layout.margin;
+    width = layout.n + 2 * margin;
+    data.assign(layout.shift.size() * comps * width, T(0));
+  }
+  void Clear() { std::fill(data.begin(), data.end(), T(0)); }
+  T* At(size_t family) { return data.data() + family * comps * width + margin; }  // component 0, particle 0
+  const T* At(size_t family) const { return data.data() + family * comps * width + margin; }
+};
 
 template <typename T>
 struct Inputs {  // one batch member's parameters
@@ -194,13 +221,14 @@ inline Geometry<T> SpringGeometry(const T* x, const T* v, int64_t stride, int64_
   return g;
 }
 
-// Force of springs k.. on their particle a (the one on b is minus it), into out[3][kRun].
+// Force of springs k.. on their particle a (the one on b is minus it), into the three
+// rows at out (components `width` apart), entries a..
 template <typename T>
 void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks, const T* kd,
-               int64_t len, T* out) {
+               int64_t len, T* out, int64_t width) {
   T* o0 = out;
-  T* o1 = out + kRun;
-  T* o2 = out + 2 * kRun;
+  T* o1 = out + width;
+  T* o2 = out + 2 * width;
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
     const Geometry<T> g = SpringGeometry(x, v, n, a + j, b + j, rest[j]);
@@ -211,25 +239,41 @@ void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T*
   }
 }
 
-template <typename T>
-inline void AddRow(T* target, const T* row, int64_t len) {
-  JAXSPRING_INDEPENDENT
-  for (int64_t j = 0; j < len; ++j) target[j] += row[j];
+// out[c][j] (+)= sum over NF families of row_c(i) - row_c(i - shift), i = i0 + j, for
+// each of `comps` components (out's rows kRun apart).
+template <typename T, int NF, bool kInit>
+void FamilyDifferences(const Rows<T>& rows, const int64_t* shifts, size_t first, int64_t i0, int64_t len, T* out) {
+  for (int c = 0; c < rows.comps; ++c) {
+    const T* here[NF];
+    const T* there[NF];
+    for (int f = 0; f < NF; ++f) {
+      here[f] = rows.At(first + f) + c * rows.width + i0;
+      there[f] = here[f] - shifts[first + f];
+    }
+    T* o = out + c * kRun;
+    JAXSPRING_INDEPENDENT
+    for (int64_t j = 0; j < len; ++j) {
+      T sum = kInit ? T(0) : o[j];
+      for (int f = 0; f < NF; ++f) sum = sum + here[f][j] - there[f][j];  // jaxspring/_forces.py's order
+      o[j] = sum;
+    }
+  }
 }
 
+// out[c][j] = sum over all families of row_c(i0 + j) - row_c(i0 + j - shift): for the
+// forward rows the spring force on particle i0 + j, for the reverse rows minus the
+// springs' cotangent of its position and velocity.
 template <typename T>
-inline void SubtractRow(T* target, const T* row, int64_t len) {
-  JAXSPRING_INDEPENDENT
-  for (int64_t j = 0; j < len; ++j) target[j] -= row[j];
-}
-
-// Adds +row to particles a.. and -row to b.. for all three components (two separate
-// loops: with a short shift the two ranges overlap).
-template <typename T>
-inline void Scatter(T* target, int64_t n, int64_t a, int64_t b, const T* row, int64_t len) {
-  for (int c = 0; c < 3; ++c) {
-    AddRow(target + c * n + a, row + c * kRun, len);
-    SubtractRow(target + c * n + b, row + c * kRun, len);
+void Differences(const Layout& layout, const Rows<T>& rows, int64_t i0, int64_t len, T* out) {
+  using Fn = void (*)(const Rows<T>&, const int64_t*, size_t, int64_t, int64_t, T*);
+  static const Fn first[4] = {FamilyDifferences<T, 1, true>, FamilyDifferences<T, 2, true>,
+                              FamilyDifferences<T, 3, true>, FamilyDifferences<T, 4, true>};
+  static const Fn more[4] = {FamilyDifferences<T, 1, false>, FamilyDifferences<T, 2, false>,
+                             FamilyDifferences<T, 3, false>, FamilyDifferences<T, 4, false>};
+  const size_t families = layout.shift.size();
+  for (size_t f = 0; f < families; f += 4) {
+    const size_t count = std::min<size_t>(4, families - f);
+    (f == 0 ? first : more)[count - 1](rows, layout.shift.data(), f, i0, len, out);
   }
 }
 
@@ -239,32 +283,12 @@ inline void Share(int64_t n, int t, int threads, int64_t* lo, int64_t* hi) {
   *hi = n * (t + 1) / threads;
 }
 
-// Adds the other threads' private buffers into `target` over [lo, hi) and clears them.
-template <typename T>
-void Gather(T* target, std::vector<std::vector<T>>& buffers, int64_t n, int64_t lo, int64_t hi) {
-  for (size_t t = 1; t < buffers.size(); ++t) {
-    for (int c = 0; c < 3; ++c) {
-      T* other = buffers[t].data() + c * n;
-      T* mine = target + c * n;
-      JAXSPRING_INDEPENDENT
-      for (int64_t i = lo; i < hi; ++i) {
-        mine[i] += other[i];
-        other[i] = T(0);
-      }
-    }
-  }
-}
-
-// One particle's step: adds drag, gravity and ground to its spring force f[e] (then
-// clears it) and integrates, v' = free ? v + (dt F) / m : 0, x' = x + dt v'. Components
-// are `stride` apart.
+// One particle's step from x, v to xo, vo (which may be x, v): adds drag, gravity and
+// ground to its spring force (a0, a1, a2) and integrates, v' = free ? v + (dt F) / m : 0,
+// x' = x + dt v'. Components are `stride` apart.
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
-inline void UpdateParticle(T* x, T* v, T* f, int64_t stride, int64_t e, T m, T free, T cdm, T kg, T kgd, T g0, T g1,
-                           T g2, T height, T dt) {
-  T a0 = f[e], a1 = f[stride + e], a2 = f[2 * stride + e];
-  f[e] = T(0);
-  f[stride + e] = T(0);
-  f[2 * stride + e] = T(0);
+inline void Integrate(const T* x, const T* v, T* xo, T* vo, int64_t stride, int64_t e, T a0, T a1, T a2, T m,
+                      T free, T cdm, T kg, T kgd, T g0, T g1, T g2, T height, T dt) {
   const T w0 = v[e], w1 = v[stride + e], w2 = v[2 * stride + e];
   if (kDragOn) {
     const T c = -cdm * std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
@@ -283,64 +307,92 @@ inline void UpdateParticle(T* x, T* v, T* f, int64_t stride, int64_t e, T m, T f
   }
   const bool on = free != T(0);
   const T n0 = on ? w0 + dt * a0 / m : T(0), n1 = on ? w1 + dt * a1 / m : T(0), n2 = on ? w2 + dt * a2 / m : T(0);
-  v[e] = n0;
-  v[stride + e] = n1;
-  v[2 * stride + e] = n2;
-  x[e] += dt * n0;
-  x[stride + e] += dt * n1;
-  x[2 * stride + e] += dt * n2;
+  vo[e] = n0;
+  vo[stride + e] = n1;
+  vo[2 * stride + e] = n2;
+  xo[e] = x[e] + dt * n0;
+  xo[stride + e] = x[stride + e] + dt * n1;
+  xo[2 * stride + e] = x[2 * stride + e] + dt * n2;
 }
 
-// `UpdateParticle` over particles [lo, hi) of one member.
+// What a step needs besides the state: flags resolved, shared parameters read once.
+template <typename T>
+struct StepConstants {
+  T dt, g0, g1, g2, height;
+  bool drag, gravity, ground;
+  StepConstants(const Inputs<T>& p, const Config& config)
+      : dt(static_cast<T>(config.dt)),
+        g0(config.flags & kGravity ? p.gravity[0] : T(0)),
+        g1(config.flags & kGravity ? p.gravity[1] : T(0)),
+        g2(config.flags & kGravity ? p.gravity[2] : T(0)),
+        height(config.flags & kGround ? p.height[0] : T(0)),
+        drag(config.flags & kDrag),
+        gravity(config.flags & kGravity),
+        ground(config.flags & kGround) {}
+};
+
+// `Integrate` over particles i0 .. i0 + len - 1 of one member, spring forces in force[3][kRun].
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
-void ParticleStep(const Inputs<T>& p, T* x, T* v, T* force, int64_t n, T dt, T g0, T g1, T g2, T height,
-                  int64_t lo, int64_t hi) {
+void ParticleBlock(const Inputs<T>& p, const StepConstants<T>& k, const T* x, const T* v, T* xo, T* vo,
+                   const T* force, int64_t n, int64_t i0, int64_t len) {
   JAXSPRING_INDEPENDENT
-  for (int64_t i = lo; i < hi; ++i) {
-    UpdateParticle<T, kDragOn, kGravityOn, kGroundOn>(x, v, force, n, i, p.mass[i], p.free[i], p.cdm[i], p.kg[i],
-                                                      p.kgd[i], g0, g1, g2, height, dt);
+  for (int64_t j = 0; j < len; ++j) {
+    const int64_t i = i0 + j;
+    Integrate<T, kDragOn, kGravityOn, kGroundOn>(x, v, xo, vo, n, i, force[j], force[kRun + j], force[2 * kRun + j],
+                                                 p.mass[i], p.free[i], p.cdm[i], p.kg[i], p.kgd[i], k.g0, k.g1, k.g2,
+                                                 k.height, k.dt);
   }
 }
 
 template <typename T>
-using ParticleStepFn = void (*)(const Inputs<T>&, T*, T*, T*, int64_t, T, T, T, T, T, int64_t, int64_t);
+using ParticleBlockFn = void (*)(const Inputs<T>&, const StepConstants<T>&, const T*, const T*, T*, T*, const T*,
+                                 int64_t, int64_t, int64_t);
 
 template <typename T>
-ParticleStepFn<T> PickParticleStep(bool drag, bool gravity, bool ground) {
-  static const ParticleStepFn<T> table[8] = {
-      ParticleStep<T, false, false, false>, ParticleStep<T, true, false, false>, ParticleStep<T, false, true, false>,
-      ParticleStep<T, true, true, false>,   ParticleStep<T, false, false, true>, ParticleStep<T, true, false, true>,
-      ParticleStep<T, false, true, true>,   ParticleStep<T, true, true, true>};
-  return table[(drag ? 1 : 0) + (gravity ? 2 : 0) + (ground ? 4 : 0)];
+ParticleBlockFn<T> PickParticleBlock(const StepConstants<T>& k) {
+  static const ParticleBlockFn<T> table[8] = {
+      ParticleBlock<T, false, false, false>, ParticleBlock<T, true, false, false>, ParticleBlock<T, false, true, false>,
+      ParticleBlock<T, true, true, false>,   ParticleBlock<T, false, false, true>, ParticleBlock<T, true, false, true>,
+      ParticleBlock<T, false, true, true>,   ParticleBlock<T, true, true, true>};
+  return table[(k.drag ? 1 : 0) + (k.gravity ? 2 : 0) + (k.ground ? 4 : 0)];
 }
 
-// `steps` steps of one member; thread t of the team. force is shared (3n, zero on entry),
-// extra[t] (t >= 1) private; traj (ceil(steps / stride), 2, 3, n) or null: the state at
-// the start of every stride-th step.
+// One step of one member from (x, v) to (xo, vo) (the same arrays, or the next stored
+// state); thread t of the team, particles [lo, hi). `rows` holds 3 components.
 template <typename T>
-void Simulate(const Layout& layout, const Inputs<T>& p, const Config& config, T* x, T* v, T* force,
-              std::vector<std::vector<T>>& extra, T* traj, Team& team, int t) {
+void Step(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* x, const T* v, T* xo, T* vo,
+          Rows<T>& rows, Team& team, int64_t lo, int64_t hi) {
   const int64_t n = layout.n;
-  const T dt = static_cast<T>(config.dt);
-  const bool drag = config.flags & kDrag, gravity = config.flags & kGravity, ground = config.flags & kGround;
-  const T g0 = gravity ? p.gravity[0] : T(0), g1 = gravity ? p.gravity[1] : T(0), g2 = gravity ? p.gravity[2] : T(0);
-  const T height = ground ? p.height[0] : T(0);
-  const auto particles = PickParticleStep<T>(drag, gravity, ground);
-  std::vector<T> row(3 * kRun);
+  for (size_t f = 0; f < layout.runs.size(); ++f) {
+    const int64_t shift = layout.shift[f];
+    T* row = rows.At(f);
+    for (const Run& run : layout.runs[f]) {
+      if (run.a < lo || run.a >= hi) continue;
+      SpringRun(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row + run.a,
+                rows.width);
+    }
+  }
+  team.Sync();
+  const auto particles = PickParticleBlock(k);
+  alignas(64) T force[3 * kRun];
+  for (int64_t i0 = lo; i0 < hi; i0 += kRun) {
+    const int64_t len = std::min(kRun, hi - i0);
+    Differences(layout, rows, i0, len, force);
+    particles(p, k, x, v, xo, vo, force, n, i0, len);
+  }
+  team.Sync();
+}
+
+// `steps` steps of one member in place; thread t of the team. traj (ceil(steps /
+// stride), 2, 3, n) or null: the state at the start of every stride-th step.
+template <typename T>
+void Simulate(const Layout& layout, const Inputs<T>& p, const Config& config, T* x, T* v, Rows<T>& rows, T* traj,
+              Team& team, int t) {
+  const int64_t n = layout.n;
+  const StepConstants<T> k(p, config);
   int64_t lo, hi;
   Share(n, t, team.size(), &lo, &hi);
-  T* mine = t == 0 ? force : extra[t].data();
   for (int64_t step = 0; step < config.steps; ++step) {
-    for (size_t f = 0; f < layout.runs.size(); ++f) {
-      const int64_t shift = layout.shift[f];
-      for (const Run& run : layout.runs[f]) {
-        if (run.a < lo || run.a >= hi) continue;
-        SpringRun(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row.data());
-        Scatter(mine, n, run.a, run.a + shift, row.data(), run.len);
-      }
-    }
-    team.Sync();
-    Gather(force, extra, n, lo, hi);
     if (traj && step % config.stride == 0) {
       T* state = traj + step / config.stride * 6 * n;
       for (int c = 0; c < 3; ++c) {
@@ -348,8 +400,7 @@ void Simulate(const Layout& layout, const Inputs<T>& p, const Config& config, T*
         std::copy(v + c * n + lo, v + c * n + hi, state + (3 + c) * n + lo);
       }
     }
-    particles(p, x, v, force, n, dt, g0, g1, g2, height, lo, hi);
-    team.Sync();
+    Step(layout, p, k, x, v, x, v, rows, team, lo, hi);
   }
 }
 
@@ -359,25 +410,35 @@ struct Cotangents {
   T *x, *v, *rest, *ks, *kd, *mass, *cdm, *gravity, *kg, *kgd, *height;
 };
 
+// One thread's sums for the parameters shared by all particles (gravity's three
+// components, the ground height), kept per lane of a particle block: Partials[q * kRun +
+// j] sums quantity q over particles i0 + j of every block and step (a sum into one
+// scalar would not vectorise).
 template <typename T>
-struct Partials {  // one thread's sums for the parameters shared by all particles
-  T gravity[3] = {0, 0, 0};
-  T height = 0;
+struct Partials {
+  std::vector<T> lanes = std::vector<T>(4 * kRun, T(0));
+  T Total(int q) const {
+    T sum = 0;
+    for (int64_t j = 0; j < kRun; ++j) sum += lanes[q * kRun + j];
+    return sum;
+  }
 };
 
-// Reverse of `ParticleStep` over particles [lo, hi): from the cotangents of x', v' in
-// out.x, out.v, writes those of x, v through the integrator, drag, gravity and ground
-// (the springs' part is added by the spring pass) and the cotangent of the force to gf.
+// Reverse of `ParticleBlock` over particles i0 .. i0 + len - 1: adds the springs' part
+// of the step after (-springs[6][kRun]: x then v) to the cotangents of x', v' in out.x,
+// out.v, then writes those of x, v through the integrator, drag, gravity and ground
+// (the springs' part of this step follows in the next particle pass) and the cotangent
+// of the force to gf.
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
-Partials<T> ReverseParticles(const Inputs<T>& p, const Cotangents<T>& out, const T* x, const T* v, const T* v_next,
-                             T* gf, int64_t n, T dt, T g0, T g1, T g2, T height, int64_t lo, int64_t hi,
-                             Partials<T> sums) {
+void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotangents<T>& out, const T* x,
+                             const T* v, const T* v_next, T* gf, const T* springs, int64_t n, int64_t i0, int64_t len,
+                             T* sums) {
+  T* cx0 = out.x;
   T* cx1 = out.x + n;
+  T* cx2 = out.x + 2 * n;
   T* cv0 = out.v;
   T* cv1 = out.v + n;
   T* cv2 = out.v + 2 * n;
-  const T* cx0 = out.x;
-  const T* cx2 = out.x + 2 * n;
   T* gf0 = gf;
   T* gf1 = gf + n;
   T* gf2 = gf + 2 * n;
@@ -390,23 +451,32 @@ Partials<T> ReverseParticles(const Inputs<T>& p, const Cotangents<T>& out, const
   const T* cdm = p.cdm;
   const T* kg = p.kg;
   const T* kgd = p.kgd;
-  T cg0 = 0, cg1 = 0, cg2 = 0, ch = 0;
+  const T dt = k.dt, g0 = k.g0, g1 = k.g1, g2 = k.g2, height = k.height;
+  T* cg0 = sums;
+  T* cg1 = sums + kRun;
+  T* cg2 = sums + 2 * kRun;
+  T* ch = sums + 3 * kRun;
   JAXSPRING_INDEPENDENT
-  for (int64_t i = lo; i < hi; ++i) {
+  for (int64_t j = 0; j < len; ++j) {
+    const int64_t i = i0 + j;
     const T m = mass[i];
     const bool on = free[i] != T(0);
     const T w0 = v[i], w1 = v[n + i], w2 = v[2 * n + i];
+    const T x0 = cx0[i] - springs[j], x1 = cx1[i] - springs[kRun + j], x2 = cx2[i] - springs[2 * kRun + j];
+    const T y0 = cv0[i] - springs[3 * kRun + j], y1 = cv1[i] - springs[4 * kRun + j],
+            y2 = cv2[i] - springs[5 * kRun + j];
     // v' feeds x' = x + dt v'; v' = v + (dt F) / m
-    T c0 = on ? cv0[i] + dt * cx0[i] : T(0);
-    T c1 = on ? cv1[i] + dt * cx1[i] : T(0);
-    T c2 = on ? cv2[i] + dt * cx2[i] : T(0);
+    T c0 = on ? y0 + dt * x0 : T(0);
+    T c1 = on ? y1 + dt * x1 : T(0);
+    T c2 = on ? y2 + dt * x2 : T(0);
     const T f0 = c0 * dt / m, f1 = c1 * dt / m, f2 = c2 * dt / m;
     // dv'/dm = -(dt F) / m^2 = -(v' - v) / m for free particles
     T cm = -(c0 * (v_next[i] - w0) + c1 * (v_next[n + i] - w1) + c2 * (v_next[2 * n + i] - w2)) / m;
+    T cx1_out = x1;
     if (kGravityOn) {
-      cg0 += m * f0;
-      cg1 += m * f1;
-      cg2 += m * f2;
+      cg0[j] += m * f0;
+      cg1[j] += m * f1;
+      cg2[j] += m * f2;
       cm += g0 * f0 + g1 * f1 + g2 * f2;
     }
     if (kDragOn) {
@@ -423,11 +493,14 @@ Partials<T> ReverseParticles(const Inputs<T>& p, const Cotangents<T>& out, const
       const T normal = depth > 0 ? f1 : T(0);
       ckg[i] += depth * normal;
       ckgd[i] -= w1 * normal;
-      ch += kg[i] * normal;
-      cx1[i] -= kg[i] * normal;
+      ch[j] += kg[i] * normal;
+      cx1_out -= kg[i] * normal;
       c1 -= kgd[i] * normal;
     }
     cmass[i] += cm;
+    cx0[i] = x0;
+    cx1[i] = cx1_out;
+    cx2[i] = x2;
     cv0[i] = c0;
     cv1[i] = c1;
     cv2[i] = c2;
@@ -435,37 +508,32 @@ Partials<T> ReverseParticles(const Inputs<T>& p, const Cotangents<T>& out, const
     gf1[i] = f1;
     gf2[i] = f2;
   }
-  sums.gravity[0] += cg0;
-  sums.gravity[1] += cg1;
-  sums.gravity[2] += cg2;
-  sums.height += ch;
-  return sums;
 }
 
 template <typename T>
-using ReverseParticlesFn = Partials<T> (*)(const Inputs<T>&, const Cotangents<T>&, const T*, const T*, const T*, T*,
-                                           int64_t, T, T, T, T, T, int64_t, int64_t, Partials<T>);
+using ReverseParticlesFn = void (*)(const Inputs<T>&, const StepConstants<T>&, const Cotangents<T>&, const T*,
+                                    const T*, const T*, T*, const T*, int64_t, int64_t, int64_t, T*);
 
 template <typename T>
-ReverseParticlesFn<T> PickReverseParticles(bool drag, bool gravity, bool ground) {
+ReverseParticlesFn<T> PickReverseParticles(const StepConstants<T>& k) {
   static const ReverseParticlesFn<T> table[8] = {
       ReverseParticles<T, false, false, false>, ReverseParticles<T, true, false, false>,
       ReverseParticles<T, false, true, false>,  ReverseParticles<T, true, true, false>,
       ReverseParticles<T, false, false, true>,  ReverseParticles<T, true, false, true>,
       ReverseParticles<T, false, true, true>,   ReverseParticles<T, true, true, true>};
-  return table[(drag ? 1 : 0) + (gravity ? 2 : 0) + (ground ? 4 : 0)];
+  return table[(k.drag ? 1 : 0) + (k.gravity ? 2 : 0) + (k.ground ? 4 : 0)];
 }
 
-// Reverse of `SpringRun` + `Scatter`: from gf, the cotangent of the force, adds the
-// springs' part of the cotangents of x and v (to gx, gv: + on b, - on a, as
-// d = x_b - x_a; via the scratch rows r[6][kRun]) and their cotangents of rest length,
-// ks and kd (to out.*[k..]).
+// Reverse of `SpringRun`: from gf, the cotangent of the force, writes the springs'
+// cotangent rows (6 rows at out, `width` apart: the cotangent g of d = x_b - x_a, then h
+// of w = v_b - v_a; + on b, - on a) and adds their cotangents of rest length, ks and kd
+// (to ct.*[k..]).
 template <typename T>
 void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks,
-                const T* kd, int64_t len, const Cotangents<T>& out, int64_t k, T* gx, T* gv, T* r) {
-  T* crest = out.rest + k;
-  T* cks = out.ks + k;
-  T* ckd = out.kd + k;
+                const T* kd, int64_t len, const Cotangents<T>& ct, int64_t k, T* out, int64_t width) {
+  T* crest = ct.rest + k;
+  T* cks = ct.ks + k;
+  T* ckd = ct.kd + k;
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
     const Geometry<T> g = SpringGeometry(x, v, n, a + j, b + j, rest[j]);
@@ -478,60 +546,73 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
     // with cu = m c + w cc (cotangent of u): u . cu = m uc + closing cc
     const T cl = ks[j] * uc - inv * (m * uc + closing * cc);  // u = d / length
     const T p = inv * m, q = inv * cc;
-    const T g0 = p * c0 + q * w0 + cl * u0, g1 = p * c1 + q * w1 + cl * u1, g2 = p * c2 + q * w2 + cl * u2;
-    const T h0 = u0 * cc, h1 = u1 * cc, h2 = u2 * cc;
     cks[j] += e * uc;
     ckd[j] += closing * uc;
     crest[j] -= ks[j] * uc;
-      r[j] = g0;
-      r[kRun + j] = g1;
-      r[2 * kRun + j] = g2;
-      r[3 * kRun + j] = h0;
-      r[4 * kRun + j] = h1;
-      r[5 * kRun + j] = h2;
+    out[j] = p * c0 + q * w0 + cl * u0;
+    out[width + j] = p * c1 + q * w1 + cl * u1;
+    out[2 * width + j] = p * c2 + q * w2 + cl * u2;
+    out[3 * width + j] = u0 * cc;
+    out[4 * width + j] = u1 * cc;
+    out[5 * width + j] = u2 * cc;
   }
-  Scatter(gx, n, b, a, r, len);
-  Scatter(gv, n, b, a, r + 3 * kRun, len);
 }
 
 // Reverse pass over `steps` steps from the stored states (every step's); the cotangent
-// of the final state is in out.x, out.v on entry, that of the initial state on exit.
+// of the final state is in out.x, out.v on entry, that of the initial state on exit
+// except for the springs' part of the first step, left in `rows` (6 components) for the
+// next call or `FinishReverse`.
 template <typename T>
 void Reverse(const Layout& layout, const Inputs<T>& p, const Config& config, const T* traj, const T* v_final,
-             const Cotangents<T>& out, T* gf, std::vector<std::vector<T>>& extra_x,
-             std::vector<std::vector<T>>& extra_v, Partials<T>& partials, Team& team, int t) {
+             const Cotangents<T>& out, T* gf, Rows<T>& rows, Partials<T>& partials, Team& team, int t) {
   const int64_t n = layout.n;
-  const T dt = static_cast<T>(config.dt);
-  const bool drag = config.flags & kDrag, gravity = config.flags & kGravity, ground = config.flags & kGround;
-  const T g0 = gravity ? p.gravity[0] : T(0), g1 = gravity ? p.gravity[1] : T(0), g2 = gravity ? p.gravity[2] : T(0);
-  const T height = ground ? p.height[0] : T(0);
-  std::vector<T> row(6 * kRun);
+  const StepConstants<T> k(p, config);
   int64_t lo, hi;
   Share(n, t, team.size(), &lo, &hi);
-  T* gx = t == 0 ? out.x : extra_x[t].data();
-  T* gv = t == 0 ? out.v : extra_v[t].data();
-  const auto reverse_particles = PickReverseParticles<T>(drag, gravity, ground);
+  const auto reverse_particles = PickReverseParticles(k);
+  alignas(64) T springs[6 * kRun];
   for (int64_t step = config.steps - 1; step >= 0; --step) {
     const T* x = traj + step * 6 * n;
     const T* v = x + 3 * n;
     const T* v_next = step + 1 < config.steps ? traj + (step + 1) * 6 * n + 3 * n : v_final;
-    Gather(out.x, extra_x, n, lo, hi);
-    Gather(out.v, extra_v, n, lo, hi);
-    partials = reverse_particles(p, out, x, v, v_next, gf, n, dt, g0, g1, g2, height, lo, hi, partials);
+    for (int64_t i0 = lo; i0 < hi; i0 += kRun) {
+      const int64_t len = std::min(kRun, hi - i0);
+      Differences(layout, rows, i0, len, springs);
+      reverse_particles(p, k, out, x, v, v_next, gf, springs, n, i0, len, partials.lanes.data());
+    }
     team.Sync();
     for (size_t f = 0; f < layout.runs.size(); ++f) {
       const int64_t shift = layout.shift[f];
+      T* row = rows.At(f);
       for (const Run& run : layout.runs[f]) {
         if (run.a < lo || run.a >= hi) continue;
-        const int64_t a = run.a, b = run.a + shift, len = run.len;
-        ReverseRun(x, v, gf, n, a, b, p.rest + run.k, p.ks + run.k, p.kd + run.k, len, out, run.k, gx, gv,
-                   row.data());
+        ReverseRun(x, v, gf, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, out,
+                   run.k, row + run.a, rows.width);
       }
     }
     team.Sync();
   }
-  Gather(out.x, extra_x, n, lo, hi);
-  Gather(out.v, extra_v, n, lo, hi);
+}
+
+// Adds the springs' part left in `rows` by the last `Reverse` call to out.x, out.v.
+template <typename T>
+void FinishReverse(const Layout& layout, const Cotangents<T>& out, const Rows<T>& rows, Team& team, int t) {
+  const int64_t n = layout.n;
+  int64_t lo, hi;
+  Share(n, t, team.size(), &lo, &hi);
+  alignas(64) T springs[6 * kRun];
+  for (int64_t i0 = lo; i0 < hi; i0 += kRun) {
+    const int64_t len = std::min(kRun, hi - i0);
+    Differences(layout, rows, i0, len, springs);
+    for (int c = 0; c < 3; ++c) {
+      JAXSPRING_INDEPENDENT
+      for (int64_t j = 0; j < len; ++j) {
+        out.x[c * n + i0 + j] -= springs[c * kRun + j];
+        out.v[c * n + i0 + j] -= springs[(3 + c) * kRun + j];
+      }
+    }
+  }
+  team.Sync();
 }
 
 // Threads for a call: members over threads when batched, one lattice split when large.
@@ -543,21 +624,17 @@ inline int Threads(int64_t batch, const Layout& layout) {
 // Buffers of one team working on one member at a time.
 template <typename T>
 struct Workspace {
-  Workspace(int64_t n, int threads, int64_t segment = 0)
-      : force(3 * n, T(0)), extra(threads), extra_x(threads), extra_v(threads), partials(threads) {
-    for (int t = 1; t < threads; ++t) extra[t].assign(3 * n, T(0));
+  Workspace(const Layout& layout, int threads, int64_t segment = 0) : partials(threads) {
+    forward.Allocate(layout, 3);
     if (segment > 0) {
-      x.resize(3 * n);
-      v.resize(3 * n);
+      const int64_t n = layout.n;
       gf.resize(3 * n);
       states.resize(segment * 6 * n);
-      for (int t = 1; t < threads; ++t) {
-        extra_x[t].assign(3 * n, T(0));
-        extra_v[t].assign(3 * n, T(0));
-      }
+      reverse.Allocate(layout, 6);
     }
   }
-  // the member's spring parameters in padded order (zero for padding), and their cotangents
+  // the member's spring parameters in padded order (zero for padding), and their
+  // cotangents (and the reverse rows) cleared
   void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents) {
     for (auto* buffer : {&rest, &ks, &kd}) buffer->assign(layout.padded, T(0));
     for (const Run& r : layout.valid) {
@@ -565,7 +642,10 @@ struct Workspace {
       std::copy(p.ks + r.k, p.ks + r.k + r.len, ks.data() + r.a);
       std::copy(p.kd + r.k, p.kd + r.k + r.len, kd.data() + r.a);
     }
-    if (cotangents) ct.assign(3 * layout.padded, T(0));
+    if (cotangents) {
+      ct.assign(3 * layout.padded, T(0));
+      reverse.Clear();
+    }
   }
   Inputs<T> Padded(Inputs<T> p) const {
     p.rest = rest.data();
@@ -589,8 +669,8 @@ struct Workspace {
       }
     }
   }
-  std::vector<T> force, x, v, gf, states, rest, ks, kd, ct;
-  std::vector<std::vector<T>> extra, extra_x, extra_v;
+  Rows<T> forward, reverse;  // spring rows of the forward steps (and replays), of the reverse pass
+  std::vector<T> gf, states, rest, ks, kd, ct;
   std::vector<Partials<T>> partials;
 };
 
@@ -598,25 +678,20 @@ struct Workspace {
 // starting state, writing the starting state of each of its steps to `states`.
 template <typename T>
 int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored, int64_t segment,
-               T* x, T* v, T* force, std::vector<std::vector<T>>& extra, T* states, Team& team, int t) {
+               Rows<T>& rows, T* states, Team& team, int t) {
   const int64_t n = layout.n;
   int64_t lo, hi;
   Share(n, t, team.size(), &lo, &hi);
   const int64_t length = std::min(config.stride, config.steps - segment * config.stride);
   const T* start = stored + segment * 6 * n;
-  for (int c = 0; c < 3; ++c) {
-    std::copy(start + c * n + lo, start + c * n + hi, x + c * n + lo);
-    std::copy(start + (3 + c) * n + lo, start + (3 + c) * n + hi, v + c * n + lo);
-  }
+  for (int c = 0; c < 6; ++c) std::copy(start + c * n + lo, start + c * n + hi, states + c * n + lo);
   team.Sync();
-  const Config replay{length - 1, config.flags, config.dt, 1};
-  Simulate(layout, p, replay, x, v, force, extra, states, team, t);
-  T* last = states + (length - 1) * 6 * n;  // the segment's last starting state
-  for (int c = 0; c < 3; ++c) {
-    std::copy(x + c * n + lo, x + c * n + hi, last + c * n + lo);
-    std::copy(v + c * n + lo, v + c * n + hi, last + (3 + c) * n + lo);
+  const StepConstants<T> k(p, config);
+  for (int64_t step = 0; step + 1 < length; ++step) {
+    const T* x = states + step * 6 * n;
+    T* next = states + (step + 1) * 6 * n;
+    Step(layout, p, k, x, x + 3 * n, next, next + 3 * n, rows, team, lo, hi);
   }
-  team.Sync();
   return length;
 }
 
@@ -636,13 +711,12 @@ void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& conf
   const int64_t n = layout.n;
   const int64_t segments = (config.steps + config.stride - 1) / config.stride;
   for (int64_t segment = segments - 1; segment >= 0; --segment) {
-    const int64_t length = Replay(layout, p, config, stored, segment, work.x.data(), work.v.data(),
-                                  work.force.data(), work.extra, work.states.data(), team, t);
+    const int64_t length = Replay(layout, p, config, stored, segment, work.forward, work.states.data(), team, t);
     const Config reverse{length, config.flags, config.dt, 1};
     Reverse(layout, p, reverse, work.states.data(), VelocityAfter(config, stored, v_final, segment, n), out,
-            work.gf.data(), work.extra_x, work.extra_v, work.partials[t], team, t);
-    team.Sync();
+            work.gf.data(), work.reverse, work.partials[t], team, t);
   }
+  FinishReverse(layout, out, work.reverse, team, t);
 }
 
 // The same for a small lattice on two threads: one replays segment s - 1 while the
@@ -660,8 +734,7 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
     Team solo(1);
     if (t == 1) {  // the replayer
       for (int64_t j = 0; j < segments; ++j) {
-        lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.x.data(), work.v.data(),
-                                work.force.data(), work.extra, buffers[j % 2], solo, 0);
+        lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.forward, buffers[j % 2], solo, 0);
         pair.Sync();
       }
       return;
@@ -670,9 +743,10 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
     for (int64_t j = 0; j < segments; ++j) {
       const Config reverse{lengths[j % 2], config.flags, config.dt, 1};
       Reverse(layout, p, reverse, buffers[j % 2], VelocityAfter(config, stored, v_final, segments - 1 - j, n), out,
-              work.gf.data(), work.extra_x, work.extra_v, work.partials[0], solo, 0);
+              work.gf.data(), work.reverse, work.partials[0], solo, 0);
       if (j + 1 < segments) pair.Sync();
     }
+    FinishReverse(layout, out, work.reverse, solo, 0);
   });
 }
 
@@ -694,12 +768,12 @@ void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work)
   if (batch > 1) {
     pool.Launch([&](int t) {
       Team solo(1);
-      Workspace<T> space(layout.n, 1, segment);
+      Workspace<T> space(layout, 1, segment);
       for (int64_t i = t; i < batch; i += threads) work(i, space, solo, 0);
     });
     return;
   }
-  Workspace<T> space(layout.n, threads, segment);
+  Workspace<T> space(layout, threads, segment);
   pool.Launch([&](int t) { work(0, space, pool, t); });
 }
 
@@ -724,19 +798,26 @@ struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   std::vector<T> x, v, force, rest, ks, kd, mass, free, cdm, kg, kgd, gravity, height;
 };
 
-// `UpdateParticle` for every particle of a group (lanes innermost; gravity and ground
-// height per lane).
+// `Integrate` for every particle of a group in place, its force then cleared (lanes
+// innermost; gravity and ground height per lane).
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
 void GroupParticles(Group<T>& g, int64_t n, T dt) {
   constexpr int64_t L = Lanes<T>();
+  const int64_t nl = n * L;
   const T* gravity = g.gravity.data();
+  T* x = g.x.data();
+  T* v = g.v.data();
+  T* f = g.force.data();
   for (int64_t q = 0; q < n; ++q) {
     JAXSPRING_INDEPENDENT
     for (int64_t l = 0; l < L; ++l) {
       const int64_t e = q * L + l;
-      UpdateParticle<T, kDragOn, kGravityOn, kGroundOn>(g.x.data(), g.v.data(), g.force.data(), n * L, e, g.mass[e],
-                                                        g.free[e], g.cdm[e], g.kg[e], g.kgd[e], gravity[l],
-                                                        gravity[L + l], gravity[2 * L + l], g.height[l], dt);
+      Integrate<T, kDragOn, kGravityOn, kGroundOn>(x, v, x, v, nl, e, f[e], f[nl + e], f[2 * nl + e], g.mass[e],
+                                                   g.free[e], g.cdm[e], g.kg[e], g.kgd[e], gravity[l], gravity[L + l],
+                                                   gravity[2 * L + l], g.height[l], dt);
+      f[e] = T(0);
+      f[nl + e] = T(0);
+      f[2 * nl + e] = T(0);
     }
   }
 }
@@ -870,7 +951,7 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
     if (t == 0) work.Pad(layout, p, false);
     team.Sync();
     Simulate(layout, work.Padded(p), config, x_out->typed_data() + i * 3 * n, v_out->typed_data() + i * 3 * n,
-             work.force.data(), work.extra, store ? stored->typed_data() + i * per_member : nullptr, team, t);
+             work.forward, store ? stored->typed_data() + i * per_member : nullptr, team, t);
   });
   return ffi::Error::Success();
 }
@@ -925,8 +1006,8 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
     if (t == 0) {
       work.Unpad(layout, out);
       for (const Partials<T>& sums : work.partials) {
-        for (int k = 0; k < 3; ++k) out.gravity[k] += sums.gravity[k];
-        out.height[0] += sums.height;
+        for (int k = 0; k < 3; ++k) out.gravity[k] += sums.Total(k);
+        out.height[0] += sums.Total(3);
       }
     }
   });
