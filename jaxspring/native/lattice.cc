@@ -60,6 +60,7 @@ constexpr int64_t kSpringsForThreads = 60000;
 
 struct Run {
   int64_t a, k, len;  // springs k .. k+len-1 join particles a+j and a+j+shift
+  int64_t family = 0;
 };
 
 // A family with shift s is stepped as one run over the particle range [first, first +
@@ -69,9 +70,11 @@ struct Run {
 struct Layout {
   int64_t n = 0, springs = 0, padded = 0;  // particles, springs, springs with padding
   int64_t margin = 0;                      // the largest |shift|
+  bool ascending = true;                   // every shift > 0: a spring's b comes after its a
   std::vector<int64_t> shift;
-  std::vector<std::vector<Run>> runs;  // per family: pieces of its range, k = padded spring index
-  std::vector<Run> valid;              // the real springs: a = padded index, k = spring index
+  std::vector<std::vector<Run>> runs;    // per family: pieces of its range, k = padded spring index
+  std::vector<std::vector<Run>> blocks;  // per block of kRun particles: the runs whose a lie in it
+  std::vector<Run> valid;                // the real springs: a = padded index, k = spring index
 };
 
 ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const int64_t> offsets) {
@@ -102,9 +105,16 @@ ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const
     }
     std::vector<Run> pieces;  // at most kRun springs each
     for (int64_t j = 0; j < count; j += kRun) pieces.push_back({first + j, layout.padded + j, std::min(kRun, count - j)});
+    layout.blocks.resize((layout.n + kRun - 1) / kRun);
+    for (int64_t a = first; a < first + count;) {  // the same range cut at block boundaries
+      const int64_t end = std::min(first + count, (a / kRun + 1) * kRun);
+      layout.blocks[a / kRun].push_back({a, layout.padded + a - first, end - a, static_cast<int64_t>(f)});
+      a = end;
+    }
     const int64_t shift = (o[0] * s[1] + o[1]) * s[2] + o[2];
     layout.shift.push_back(shift);
     layout.margin = std::max(layout.margin, std::abs(shift));
+    layout.ascending = layout.ascending && shift > 0;
     layout.runs.push_back(std::move(pieces));
     layout.padded += count;
     start += r[0] * r[1] * r[2];
@@ -277,11 +287,16 @@ void Differences(const Layout& layout, const Rows<T>& rows, int64_t i0, int64_t 
   }
 }
 
-// Particle range [lo, hi) whose springs (by their particle a) thread t of `threads` handles.
-inline void Share(int64_t n, int t, int threads, int64_t* lo, int64_t* hi) {
-  *lo = n * t / threads;
-  *hi = n * (t + 1) / threads;
+// Blocks [lo, hi) of kRun particles (and the springs whose a lie in them) that thread t
+// of `threads` handles.
+inline void Share(const Layout& layout, int t, int threads, int64_t* lo, int64_t* hi) {
+  const int64_t blocks = static_cast<int64_t>(layout.blocks.size());
+  *lo = blocks * t / threads;
+  *hi = blocks * (t + 1) / threads;
 }
+
+// The particles of block b: [b kRun, b kRun + BlockLength(b)).
+inline int64_t BlockLength(const Layout& layout, int64_t b) { return std::min(kRun, layout.n - b * kRun); }
 
 // One particle's step from x, v to xo, vo (which may be x, v): adds drag, gravity and
 // ground to its spring force (a0, a1, a2) and integrates, v' = free ? v + (dt F) / m : 0,
@@ -358,27 +373,24 @@ ParticleBlockFn<T> PickParticleBlock(const StepConstants<T>& k) {
 }
 
 // One step of one member from (x, v) to (xo, vo) (the same arrays, or the next stored
-// state); thread t of the team, particles [lo, hi). `rows` holds 3 components.
+// state); thread t of the team, blocks [lo, hi). `rows` holds 3 components.
 template <typename T>
 void Step(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* x, const T* v, T* xo, T* vo,
           Rows<T>& rows, Team& team, int64_t lo, int64_t hi) {
   const int64_t n = layout.n;
-  for (size_t f = 0; f < layout.runs.size(); ++f) {
-    const int64_t shift = layout.shift[f];
-    T* row = rows.At(f);
-    for (const Run& run : layout.runs[f]) {
-      if (run.a < lo || run.a >= hi) continue;
-      SpringRun(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row + run.a,
-                rows.width);
+  for (int64_t b = lo; b < hi; ++b) {
+    for (const Run& run : layout.blocks[b]) {
+      SpringRun(x, v, n, run.a, run.a + layout.shift[run.family], p.rest + run.k, p.ks + run.k, p.kd + run.k,
+                run.len, rows.At(run.family) + run.a, rows.width);
     }
   }
   team.Sync();
   const auto particles = PickParticleBlock(k);
   alignas(64) T force[3 * kRun];
-  for (int64_t i0 = lo; i0 < hi; i0 += kRun) {
-    const int64_t len = std::min(kRun, hi - i0);
-    Differences(layout, rows, i0, len, force);
-    particles(p, k, x, v, xo, vo, force, n, i0, len);
+  for (int64_t b = lo; b < hi; ++b) {
+    const int64_t len = BlockLength(layout, b);
+    Differences(layout, rows, b * kRun, len, force);
+    particles(p, k, x, v, xo, vo, force, n, b * kRun, len);
   }
   team.Sync();
 }
@@ -391,13 +403,14 @@ void Simulate(const Layout& layout, const Inputs<T>& p, const Config& config, T*
   const int64_t n = layout.n;
   const StepConstants<T> k(p, config);
   int64_t lo, hi;
-  Share(n, t, team.size(), &lo, &hi);
+  Share(layout, t, team.size(), &lo, &hi);
+  const int64_t first = lo * kRun, last = std::min(n, hi * kRun);  // the particles
   for (int64_t step = 0; step < config.steps; ++step) {
     if (traj && step % config.stride == 0) {
       T* state = traj + step / config.stride * 6 * n;
       for (int c = 0; c < 3; ++c) {
-        std::copy(x + c * n + lo, x + c * n + hi, state + c * n + lo);
-        std::copy(v + c * n + lo, v + c * n + hi, state + (3 + c) * n + lo);
+        std::copy(x + c * n + first, x + c * n + last, state + c * n + first);
+        std::copy(v + c * n + first, v + c * n + last, state + (3 + c) * n + first);
       }
     }
     Step(layout, p, k, x, v, x, v, rows, team, lo, hi);
@@ -558,52 +571,47 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
   }
 }
 
-// Reverse pass over `steps` steps from the stored states (every step's); the cotangent
-// of the final state is in out.x, out.v on entry, that of the initial state on exit
-// except for the springs' part of the first step, left in `rows` (6 components) for the
-// next call or `FinishReverse`.
+// Particle state of the reverse pass at one step: the state (x, v) at its start, and
+// after it (x_after, v_after; x_after null when this is the last step of the rollout:
+// nothing after it to take the springs' part from).
 template <typename T>
-void Reverse(const Layout& layout, const Inputs<T>& p, const Config& config, const T* traj, const T* v_final,
-             const Cotangents<T>& out, T* gf, Rows<T>& rows, Partials<T>& partials, Team& team, int t) {
-  const int64_t n = layout.n;
-  const StepConstants<T> k(p, config);
-  int64_t lo, hi;
-  Share(n, t, team.size(), &lo, &hi);
-  const auto reverse_particles = PickReverseParticles(k);
-  alignas(64) T springs[6 * kRun];
-  for (int64_t step = config.steps - 1; step >= 0; --step) {
-    const T* x = traj + step * 6 * n;
-    const T* v = x + 3 * n;
-    const T* v_next = step + 1 < config.steps ? traj + (step + 1) * 6 * n + 3 * n : v_final;
-    for (int64_t i0 = lo; i0 < hi; i0 += kRun) {
-      const int64_t len = std::min(kRun, hi - i0);
-      Differences(layout, rows, i0, len, springs);
-      reverse_particles(p, k, out, x, v, v_next, gf, springs, n, i0, len, partials.lanes.data());
-    }
-    team.Sync();
-    for (size_t f = 0; f < layout.runs.size(); ++f) {
-      const int64_t shift = layout.shift[f];
-      T* row = rows.At(f);
-      for (const Run& run : layout.runs[f]) {
-        if (run.a < lo || run.a >= hi) continue;
-        ReverseRun(x, v, gf, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, out,
-                   run.k, row + run.a, rows.width);
-      }
-    }
-    team.Sync();
-  }
-}
+struct ReverseStep {
+  const T *x, *v, *x_after, *v_after;
+};
 
-// Adds the springs' part left in `rows` by the last `Reverse` call to out.x, out.v.
+// One iteration of the reverse pass, thread t of the team: the spring pass of the step
+// after (from its state and gf_after, the cotangent of its force), then the particle
+// pass of this step (writing gf, the cotangent of this step's force), or with
+// finish = true only the springs' part added to out.x, out.v (after the first step).
+// Alone, a thread runs both passes block by block (the rows it writes are read straight
+// away, from cache); a team runs them one after the other with a barrier in between.
 template <typename T>
-void FinishReverse(const Layout& layout, const Cotangents<T>& out, const Rows<T>& rows, Team& team, int t) {
+void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const ReverseStep<T>& at,
+                      bool finish, const T* gf_after, T* gf, const Cotangents<T>& out, Rows<T>& rows,
+                      Partials<T>& partials, Team& team, int t) {
   const int64_t n = layout.n;
   int64_t lo, hi;
-  Share(n, t, team.size(), &lo, &hi);
+  Share(layout, t, team.size(), &lo, &hi);
+  const auto reverse_particles = PickReverseParticles(k);
+  const bool springs_after = at.x_after != nullptr, fused = team.size() == 1 && layout.ascending;
   alignas(64) T springs[6 * kRun];
-  for (int64_t i0 = lo; i0 < hi; i0 += kRun) {
-    const int64_t len = std::min(kRun, hi - i0);
-    Differences(layout, rows, i0, len, springs);
+  auto spring_pass = [&](int64_t b) {
+    for (const Run& run : layout.blocks[b]) {
+      ReverseRun(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
+                 p.ks + run.k, p.kd + run.k, run.len, out, run.k, rows.At(run.family) + run.a, rows.width);
+    }
+  };
+  auto particle_pass = [&](int64_t b) {
+    const int64_t i0 = b * kRun, len = BlockLength(layout, b);
+    if (springs_after) {
+      Differences(layout, rows, i0, len, springs);
+    } else {
+      std::fill(springs, springs + 6 * kRun, T(0));
+    }
+    if (!finish) {
+      reverse_particles(p, k, out, at.x, at.v, at.v_after, gf, springs, n, i0, len, partials.lanes.data());
+      return;
+    }
     for (int c = 0; c < 3; ++c) {
       JAXSPRING_INDEPENDENT
       for (int64_t j = 0; j < len; ++j) {
@@ -611,7 +619,14 @@ void FinishReverse(const Layout& layout, const Cotangents<T>& out, const Rows<T>
         out.v[c * n + i0 + j] -= springs[(3 + c) * kRun + j];
       }
     }
+  };
+  for (int64_t b = lo; b < hi; ++b) {
+    if (springs_after) spring_pass(b);
+    if (fused) particle_pass(b);  // its rows (a = i - shift < i) are written
   }
+  if (fused) return;
+  team.Sync();
+  for (int64_t b = lo; b < hi; ++b) particle_pass(b);
   team.Sync();
 }
 
@@ -628,7 +643,7 @@ struct Workspace {
     forward.Allocate(layout, 3);
     if (segment > 0) {
       const int64_t n = layout.n;
-      gf.resize(3 * n);
+      gf.resize(6 * n);  // two: the cotangent of the force at a step and at the step after
       states.resize(segment * 6 * n);
       reverse.Allocate(layout, 6);
     }
@@ -681,10 +696,11 @@ int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, c
                Rows<T>& rows, T* states, Team& team, int t) {
   const int64_t n = layout.n;
   int64_t lo, hi;
-  Share(n, t, team.size(), &lo, &hi);
+  Share(layout, t, team.size(), &lo, &hi);
+  const int64_t first = lo * kRun, last = std::min(n, hi * kRun);
   const int64_t length = std::min(config.stride, config.steps - segment * config.stride);
   const T* start = stored + segment * 6 * n;
-  for (int c = 0; c < 6; ++c) std::copy(start + c * n + lo, start + c * n + hi, states + c * n + lo);
+  for (int c = 0; c < 6; ++c) std::copy(start + c * n + first, start + c * n + last, states + c * n + first);
   team.Sync();
   const StepConstants<T> k(p, config);
   for (int64_t step = 0; step + 1 < length; ++step) {
@@ -695,28 +711,59 @@ int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, c
   return length;
 }
 
-// The velocity after segment `segment`: the next stored state's, or the final one.
+// The reverse pass over one replayed segment (`length` states from `states`), from its
+// last step to its first. `after`: the state that follows the segment (the next stored
+// one), null after the rollout's last step (then v_final). `parity` alternates the two
+// force-cotangent buffers of work.gf from iteration to iteration.
 template <typename T>
-const T* VelocityAfter(const Config& config, const T* stored, const T* v_final, int64_t segment, int64_t n) {
+void ReverseSegment(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* states,
+                    int64_t length, const T* after, const T* v_final, const Cotangents<T>& out, Workspace<T>& work,
+                    int& parity, Team& team, int t) {
+  const int64_t n = layout.n;
+  for (int64_t step = length - 1; step >= 0; --step) {
+    const T* x = states + step * 6 * n;
+    const T* next = step + 1 < length ? states + (step + 1) * 6 * n : after;
+    const ReverseStep<T> at{x, x + 3 * n, next, next ? next + 3 * n : v_final};
+    T* gf_after = work.gf.data() + parity * 3 * n;
+    T* gf = work.gf.data() + (1 - parity) * 3 * n;
+    ReverseIteration(layout, p, k, at, false, gf_after, gf, out, work.reverse, work.partials[t], team, t);
+    parity = 1 - parity;
+  }
+}
+
+// After the reverse pass over the first segment: the springs' part of the first step.
+template <typename T>
+void FinishReverse(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* first,
+                   const Cotangents<T>& out, Workspace<T>& work, int parity, Team& team, int t) {
+  const int64_t n = layout.n;
+  const ReverseStep<T> at{nullptr, nullptr, first, first + 3 * n};
+  ReverseIteration(layout, p, k, at, true, work.gf.data() + parity * 3 * n, static_cast<T*>(nullptr), out, work.reverse,
+                   work.partials[t], team, t);
+}
+
+// The state stored after segment `segment`, or null after the last one.
+template <typename T>
+const T* StoredAfter(const Config& config, const T* stored, int64_t segment, int64_t n) {
   const int64_t segments = (config.steps + config.stride - 1) / config.stride;
-  return segment + 1 < segments ? stored + (segment + 1) * 6 * n + 3 * n : v_final;
+  return segment + 1 < segments ? stored + (segment + 1) * 6 * n : nullptr;
 }
 
 // The reverse pass of one member from its stored states (one every config.stride steps):
 // segment by segment from the last, replay the segment keeping every state, then run
-// `Reverse` over it. Thread t of the team (which splits every pass by particles).
+// the reverse pass over it. Thread t of the team (which splits every pass by particles).
 template <typename T>
 void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored,
                     const T* v_final, const Cotangents<T>& out, Workspace<T>& work, Team& team, int t) {
   const int64_t n = layout.n;
   const int64_t segments = (config.steps + config.stride - 1) / config.stride;
+  const StepConstants<T> k(p, config);
+  int parity = 0;
   for (int64_t segment = segments - 1; segment >= 0; --segment) {
     const int64_t length = Replay(layout, p, config, stored, segment, work.forward, work.states.data(), team, t);
-    const Config reverse{length, config.flags, config.dt, 1};
-    Reverse(layout, p, reverse, work.states.data(), VelocityAfter(config, stored, v_final, segment, n), out,
-            work.gf.data(), work.reverse, work.partials[t], team, t);
+    ReverseSegment(layout, p, k, work.states.data(), length, StoredAfter(config, stored, segment, n), v_final, out,
+                   work, parity, team, t);
   }
-  FinishReverse(layout, out, work.reverse, team, t);
+  FinishReverse(layout, p, k, work.states.data(), out, work, parity, team, t);
 }
 
 // The same for a small lattice on two threads: one replays segment s - 1 while the
@@ -739,14 +786,15 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
       }
       return;
     }
+    const StepConstants<T> k(p, config);
+    int parity = 0;
     pair.Sync();
     for (int64_t j = 0; j < segments; ++j) {
-      const Config reverse{lengths[j % 2], config.flags, config.dt, 1};
-      Reverse(layout, p, reverse, buffers[j % 2], VelocityAfter(config, stored, v_final, segments - 1 - j, n), out,
-              work.gf.data(), work.reverse, work.partials[0], solo, 0);
+      ReverseSegment(layout, p, k, buffers[j % 2], lengths[j % 2], StoredAfter(config, stored, segments - 1 - j, n),
+                     v_final, out, work, parity, solo, 0);
       if (j + 1 < segments) pair.Sync();
     }
-    FinishReverse(layout, out, work.reverse, solo, 0);
+    FinishReverse(layout, p, k, buffers[(segments - 1) % 2], out, work, parity, solo, 0);
   });
 }
 
