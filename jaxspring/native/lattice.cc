@@ -57,6 +57,8 @@ constexpr int64_t kRun = 256;  // longest run of springs or particles processed 
 constexpr int64_t kDrag = 1, kGravity = 2, kGround = 4;  // flags
 // Springs in one lattice above which a second thread pays for its two barriers a step.
 constexpr int64_t kSpringsForThreads = 60000;
+// Largest buffer of replayed spring lengths kept for the reverse pass (per segment).
+constexpr int64_t kKeepBytes = 64 << 20;
 
 struct Run {
   int64_t a, k, len;  // springs k .. k+len-1 join particles a+j and a+j+shift
@@ -214,15 +216,24 @@ struct Geometry {
   T u0, u1, u2, w0, w1, w2, inv, e, closing;
 };
 
-template <typename T>
-inline Geometry<T> SpringGeometry(const T* x, const T* v, int64_t stride, int64_t a, int64_t b, T rest) {
+// With kKnown, inv is given (stored by a replay: no square root, no division) and
+// length = |d|^2 inv.
+template <typename T, bool kKnown = false>
+inline Geometry<T> SpringGeometry(const T* x, const T* v, int64_t stride, int64_t a, int64_t b, T rest,
+                                  T known = T(0)) {
   const T d0 = x[b] - x[a], d1 = x[stride + b] - x[stride + a], d2 = x[2 * stride + b] - x[2 * stride + a];
   Geometry<T> g;
   g.w0 = v[b] - v[a];
   g.w1 = v[stride + b] - v[stride + a];
   g.w2 = v[2 * stride + b] - v[2 * stride + a];
-  const T length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
-  g.inv = T(1) / (length > 0 ? length : T(1));
+  T length;
+  if (kKnown) {
+    g.inv = known;
+    length = (d0 * d0 + d1 * d1 + d2 * d2) * known;
+  } else {
+    length = std::sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+    g.inv = T(1) / (length > 0 ? length : T(1));
+  }
   g.u0 = d0 * g.inv;
   g.u1 = d1 * g.inv;
   g.u2 = d2 * g.inv;
@@ -232,10 +243,11 @@ inline Geometry<T> SpringGeometry(const T* x, const T* v, int64_t stride, int64_
 }
 
 // Force of springs k.. on their particle a (the one on b is minus it), into the three
-// rows at out (components `width` apart), entries a..
-template <typename T>
+// rows at out (components `width` apart), entries a..; with kKeep their 1 / length to
+// inv[j] too (for the reverse pass).
+template <typename T, bool kKeep>
 void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks, const T* kd,
-               int64_t len, T* out, int64_t width) {
+               int64_t len, T* out, int64_t width, T* inv) {
   T* o0 = out;
   T* o1 = out + width;
   T* o2 = out + 2 * width;
@@ -246,6 +258,7 @@ void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T*
     o0[j] = m * g.u0;
     o1[j] = m * g.u1;
     o2[j] = m * g.u2;
+    if (kKeep) inv[j] = g.inv;
   }
 }
 
@@ -376,12 +389,19 @@ ParticleBlockFn<T> PickParticleBlock(const StepConstants<T>& k) {
 // state); thread t of the team, blocks [lo, hi). `rows` holds 3 components.
 template <typename T>
 void Step(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* x, const T* v, T* xo, T* vo,
-          Rows<T>& rows, Team& team, int64_t lo, int64_t hi) {
+          Rows<T>& rows, Team& team, int64_t lo, int64_t hi, T* inv = nullptr) {
   const int64_t n = layout.n;
   for (int64_t b = lo; b < hi; ++b) {
     for (const Run& run : layout.blocks[b]) {
-      SpringRun(x, v, n, run.a, run.a + layout.shift[run.family], p.rest + run.k, p.ks + run.k, p.kd + run.k,
-                run.len, rows.At(run.family) + run.a, rows.width);
+      const int64_t shift = layout.shift[run.family];
+      T* row = rows.At(run.family) + run.a;
+      if (inv) {
+        SpringRun<T, true>(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row,
+                           rows.width, inv + run.k);
+      } else {
+        SpringRun<T, false>(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row,
+                            rows.width, nullptr);
+      }
     }
   }
   team.Sync();
@@ -540,16 +560,16 @@ ReverseParticlesFn<T> PickReverseParticles(const StepConstants<T>& k) {
 // Reverse of `SpringRun`: from gf, the cotangent of the force, writes the springs'
 // cotangent rows (6 rows at out, `width` apart: the cotangent g of d = x_b - x_a, then h
 // of w = v_b - v_a; + on b, - on a) and adds their cotangents of rest length, ks and kd
-// (to ct.*[k..]).
-template <typename T>
+// (to ct.*[k..]). With kKnown, 1 / length of spring j is inv[j].
+template <typename T, bool kKnown>
 void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks,
-                const T* kd, int64_t len, const Cotangents<T>& ct, int64_t k, T* out, int64_t width) {
+                const T* kd, int64_t len, const Cotangents<T>& ct, int64_t k, T* out, int64_t width, const T* inv_in) {
   T* crest = ct.rest + k;
   T* cks = ct.ks + k;
   T* ckd = ct.kd + k;
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
-    const Geometry<T> g = SpringGeometry(x, v, n, a + j, b + j, rest[j]);
+    const Geometry<T> g = SpringGeometry<T, kKnown>(x, v, n, a + j, b + j, rest[j], kKnown ? inv_in[j] : T(0));
     const T u0 = g.u0, u1 = g.u1, u2 = g.u2, w0 = g.w0, w1 = g.w1, w2 = g.w2, inv = g.inv;
     const T e = g.e, closing = g.closing;
     const T m = ks[j] * e + kd[j] * closing;
@@ -577,6 +597,7 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
 template <typename T>
 struct ReverseStep {
   const T *x, *v, *x_after, *v_after;
+  const T* inv_after = nullptr;  // 1 / length of every (padded) spring at x_after, if kept
 };
 
 // One iteration of the reverse pass, thread t of the team: the spring pass of the step
@@ -597,8 +618,15 @@ void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConsta
   alignas(64) T springs[6 * kRun];
   auto spring_pass = [&](int64_t b) {
     for (const Run& run : layout.blocks[b]) {
-      ReverseRun(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
-                 p.ks + run.k, p.kd + run.k, run.len, out, run.k, rows.At(run.family) + run.a, rows.width);
+      const int64_t shift = layout.shift[run.family];
+      T* row = rows.At(run.family) + run.a;
+      if (at.inv_after) {
+        ReverseRun<T, true>(at.x_after, at.v_after, gf_after, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k,
+                            p.kd + run.k, run.len, out, run.k, row, rows.width, at.inv_after + run.k);
+      } else {
+        ReverseRun<T, false>(at.x_after, at.v_after, gf_after, n, run.a, run.a + shift, p.rest + run.k,
+                             p.ks + run.k, p.kd + run.k, run.len, out, run.k, row, rows.width, nullptr);
+      }
     }
   };
   auto particle_pass = [&](int64_t b) {
@@ -645,6 +673,8 @@ struct Workspace {
       const int64_t n = layout.n;
       gf.resize(6 * n);  // two: the cotangent of the force at a step and at the step after
       states.resize(segment * 6 * n);
+      // 1 / length of every spring at every replayed state, while it stays small
+      if (segment * layout.padded * static_cast<int64_t>(sizeof(T)) <= kKeepBytes) invs.resize(segment * layout.padded);
       reverse.Allocate(layout, 6);
     }
   }
@@ -685,15 +715,16 @@ struct Workspace {
     }
   }
   Rows<T> forward, reverse;  // spring rows of the forward steps (and replays), of the reverse pass
-  std::vector<T> gf, states, rest, ks, kd, ct;
+  std::vector<T> gf, states, invs, rest, ks, kd, ct;
   std::vector<Partials<T>> partials;
 };
 
 // Re-runs segment `segment` (config.stride steps, fewer for the last) from its stored
-// starting state, writing the starting state of each of its steps to `states`.
+// starting state, writing the starting state of each of its steps to `states` (and,
+// unless invs is null, 1 / length of every padded spring at each but the last to invs).
 template <typename T>
 int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored, int64_t segment,
-               Rows<T>& rows, T* states, Team& team, int t) {
+               Rows<T>& rows, T* states, T* invs, Team& team, int t) {
   const int64_t n = layout.n;
   int64_t lo, hi;
   Share(layout, t, team.size(), &lo, &hi);
@@ -706,7 +737,8 @@ int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, c
   for (int64_t step = 0; step + 1 < length; ++step) {
     const T* x = states + step * 6 * n;
     T* next = states + (step + 1) * 6 * n;
-    Step(layout, p, k, x, x + 3 * n, next, next + 3 * n, rows, team, lo, hi);
+    Step(layout, p, k, x, x + 3 * n, next, next + 3 * n, rows, team, lo, hi,
+         invs ? invs + step * layout.padded : static_cast<T*>(nullptr));
   }
   return length;
 }
@@ -714,16 +746,19 @@ int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, c
 // The reverse pass over one replayed segment (`length` states from `states`), from its
 // last step to its first. `after`: the state that follows the segment (the next stored
 // one), null after the rollout's last step (then v_final). `parity` alternates the two
-// force-cotangent buffers of work.gf from iteration to iteration.
+// force-cotangent buffers of work.gf from iteration to iteration. invs: what `Replay`
+// kept, or null.
 template <typename T>
 void ReverseSegment(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* states,
-                    int64_t length, const T* after, const T* v_final, const Cotangents<T>& out, Workspace<T>& work,
-                    int& parity, Team& team, int t) {
+                    const T* invs, int64_t length, const T* after, const T* v_final, const Cotangents<T>& out,
+                    Workspace<T>& work, int& parity, Team& team, int t) {
   const int64_t n = layout.n;
   for (int64_t step = length - 1; step >= 0; --step) {
     const T* x = states + step * 6 * n;
     const T* next = step + 1 < length ? states + (step + 1) * 6 * n : after;
-    const ReverseStep<T> at{x, x + 3 * n, next, next ? next + 3 * n : v_final};
+    const bool kept = invs && step + 2 < length;  // the replay stepped from state step + 1
+    const ReverseStep<T> at{x, x + 3 * n, next, next ? next + 3 * n : v_final,
+                            kept ? invs + (step + 1) * layout.padded : nullptr};
     T* gf_after = work.gf.data() + parity * 3 * n;
     T* gf = work.gf.data() + (1 - parity) * 3 * n;
     ReverseIteration(layout, p, k, at, false, gf_after, gf, out, work.reverse, work.partials[t], team, t);
@@ -759,9 +794,10 @@ void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& conf
   const StepConstants<T> k(p, config);
   int parity = 0;
   for (int64_t segment = segments - 1; segment >= 0; --segment) {
-    const int64_t length = Replay(layout, p, config, stored, segment, work.forward, work.states.data(), team, t);
-    ReverseSegment(layout, p, k, work.states.data(), length, StoredAfter(config, stored, segment, n), v_final, out,
-                   work, parity, team, t);
+    T* invs = work.invs.empty() ? nullptr : work.invs.data();
+    const int64_t length = Replay(layout, p, config, stored, segment, work.forward, work.states.data(), invs, team, t);
+    ReverseSegment(layout, p, k, work.states.data(), invs, length, StoredAfter(config, stored, segment, n), v_final,
+                   out, work, parity, team, t);
   }
   FinishReverse(layout, p, k, work.states.data(), out, work, parity, team, t);
 }
@@ -773,15 +809,17 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
                        const T* v_final, const Cotangents<T>& out, Workspace<T>& work) {
   const int64_t n = layout.n;
   const int64_t segments = (config.steps + config.stride - 1) / config.stride;
-  std::vector<T> second(work.states.size());
+  std::vector<T> second(work.states.size()), second_invs(work.invs.size());
   T* buffers[2] = {work.states.data(), second.data()};
+  T* invs[2] = {work.invs.empty() ? nullptr : work.invs.data(), second_invs.empty() ? nullptr : second_invs.data()};
   int64_t lengths[2] = {0, 0};
   Team pair(2);
   pair.Launch([&](int t) {
     Team solo(1);
     if (t == 1) {  // the replayer
       for (int64_t j = 0; j < segments; ++j) {
-        lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.forward, buffers[j % 2], solo, 0);
+        lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.forward, buffers[j % 2],
+                                invs[j % 2], solo, 0);
         pair.Sync();
       }
       return;
@@ -790,8 +828,8 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
     int parity = 0;
     pair.Sync();
     for (int64_t j = 0; j < segments; ++j) {
-      ReverseSegment(layout, p, k, buffers[j % 2], lengths[j % 2], StoredAfter(config, stored, segments - 1 - j, n),
-                     v_final, out, work, parity, solo, 0);
+      ReverseSegment(layout, p, k, buffers[j % 2], invs[j % 2], lengths[j % 2],
+                     StoredAfter(config, stored, segments - 1 - j, n), v_final, out, work, parity, solo, 0);
       if (j + 1 < segments) pair.Sync();
     }
     FinishReverse(layout, p, k, buffers[(segments - 1) % 2], out, work, parity, solo, 0);
