@@ -146,20 +146,25 @@ ffi::ErrorOr<const Layout*> MakeLayout(ffi::Span<const int64_t> shape, ffi::Span
 // Per-spring rows of every family, indexed by the spring's particle a: `comps` rows of
 // `width` = n + 2 margin values per family, so that row(i - shift) is in bounds for
 // every particle i. Entries without a spring stay zero.
+// Rows start on 64-byte boundaries at particle 0 (so blocks of particles do too).
 template <typename T>
 struct Rows {
+  static constexpr int64_t kAlign = 64 / sizeof(T);
   std::vector<T> data;
+  T* base = nullptr;  // data's first 64-byte boundary
   int64_t width = 0, margin = 0;
   int comps = 0;
   void Allocate(const Layout& layout, int components) {
     comps = components;
-    margin = layout.margin;
-    width = layout.n + 2 * margin;
-    data.assign(layout.shift.size() * comps * width, T(0));
+    margin = (layout.margin + kAlign - 1) / kAlign * kAlign;
+    width = (layout.n + 2 * margin + kAlign - 1) / kAlign * kAlign;
+    data.assign(layout.shift.size() * comps * width + kAlign, T(0));
+    const auto address = reinterpret_cast<std::uintptr_t>(data.data());
+    base = data.data() + (64 - address % 64) % 64 / sizeof(T);
   }
   void Clear() { std::fill(data.begin(), data.end(), T(0)); }
-  T* At(size_t family) { return data.data() + family * comps * width + margin; }  // component 0, particle 0
-  const T* At(size_t family) const { return data.data() + family * comps * width + margin; }
+  T* At(size_t family) { return base + family * comps * width + margin; }  // component 0, particle 0
+  const T* At(size_t family) const { return base + family * comps * width + margin; }
 };
 
 template <typename T>
