@@ -196,6 +196,34 @@ def test_lattice_kernel_batches_segments_and_checkpoints(scenes):
         assert relative(g(params.ks), h(params.ks)) < 1e-11
 
 
+def test_lattice_batches_of_members_side_by_side(scenes):
+    """Batched forward rollouts of the cloth (several particle blocks) run members side by
+    side; what the members share (rest lengths and uniform ks, kd; particle parameters) is
+    kept once. Every combination equals the pure-JAX rollouts member by member (float64)."""
+    scene = scenes["cloth"]
+    model, params, state = scene.model, scene.params, scene.state
+    native = model.replace(backend="native")
+    assert native.native_lattice and len(native.lattice[0]) == 2
+    steps = 25
+    rng = np.random.default_rng(3)
+    per_spring = params.ks * jnp.asarray(rng.uniform(0.7, 1.3, (3, model.spring_count)))
+    batches = {  # what varies: ks as one value a member (all shared), per spring, cd (particles differ)
+        "ks": dict(ks=params.ks * jnp.array([0.8, 1.0, 1.25])),
+        "ks per spring": dict(ks=per_spring),
+        "cd": dict(cd=params.cd * jnp.array([0.0, 1.0, 3.0])),
+    }
+    x0 = state.x[None] + 0.01 * jnp.asarray(rng.normal(size=(3,) + state.x.shape)) * (~model.pinned)[None, :, None]
+    for name, changes in batches.items():
+
+        def final(m, x, **values):
+            return js.rollout(m, params.replace(**values), state.replace(x=x), steps, steps).x[-1]
+
+        batched = jax.vmap(lambda x, values: final(native, x, **values))(x0, changes)
+        for i in range(3):
+            member = {key: value[i] for key, value in changes.items()}
+            assert relative(batched[i], final(model, x0[i], **member)) < 1e-12, name
+
+
 def test_lattice_kernel_threads_on_a_large_lattice():
     """A 130 x 130 cloth (67k springs) splits over threads: same numbers, float64 and float32."""
     from jaxspring._speed import cloth_of_size

@@ -879,88 +879,157 @@ constexpr int64_t Lanes() {
   return 64 / sizeof(T);  // one 64-byte vector: 16 float32 or 8 float64 members
 }
 
-// A group's working set; above kGroupBytes (measured: a 60 x 60 cloth) it leaves the
-// caches and members one by one (each thread its own) run faster.
+// What the members of a batch share, found when a call starts: the same rest lengths
+// and ks, kd uniform over each member's springs (`springs`: a batch over those scalars,
+// the usual sweep), the same particle parameters (`particles`). A group keeps shared
+// values once instead of once per lane, which keeps its working set in the caches.
+struct Sharing {
+  bool springs = false, particles = false;
+};
+
+template <typename T>
+Sharing FindSharing(const Layout& layout, int64_t batch, const std::function<Inputs<T>(int64_t)>& member) {
+  const int64_t n = layout.n, springs = layout.springs;
+  const Inputs<T> first = member(0);
+  Sharing sharing{true, true};
+  for (int64_t i = 0; i < batch && (sharing.springs || sharing.particles); ++i) {
+    const Inputs<T> p = member(i);
+    if (sharing.springs) {
+      sharing.springs = std::equal(p.rest, p.rest + springs, first.rest) &&
+                        std::all_of(p.ks, p.ks + springs, [&](T k) { return k == p.ks[0]; }) &&
+                        std::all_of(p.kd, p.kd + springs, [&](T k) { return k == p.kd[0]; });
+    }
+    if (sharing.particles) {
+      sharing.particles = std::equal(p.mass, p.mass + n, first.mass) && std::equal(p.free, p.free + n, first.free) &&
+                          std::equal(p.cdm, p.cdm + n, first.cdm) && std::equal(p.kg, p.kg + n, first.kg) &&
+                          std::equal(p.kgd, p.kgd + n, first.kgd);
+    }
+  }
+  return sharing;
+}
+
+// A group's working set (64 bytes for a value in every lane, 4 or 8 for a shared one);
+// above kGroupBytes (measured: a 60 x 60 cloth, nothing shared) it leaves the caches and
+// members one by one (each thread its own) run faster.
 constexpr int64_t kGroupBytes = 4 << 20;
-inline int64_t GroupBytes(const Layout& layout) { return 64 * (14 * layout.n + 3 * layout.padded); }
+inline int64_t GroupBytes(const Layout& layout, Sharing sharing) {
+  const int64_t springs = sharing.springs ? 2 * layout.padded * 8 / 64 : 3 * layout.padded;
+  const int64_t particles = sharing.particles ? 5 * layout.n * 8 / 64 : 5 * layout.n;
+  return 64 * (6 * layout.n + 3 * (kRun + layout.margin) + springs + particles);
+}
 
 template <typename T>
 struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   std::vector<T> x, v, force, rest, ks, kd, mass, free, cdm, kg, kgd, gravity, height;
+  // with Sharing::springs: rest (padded) and valid (1 for a spring, 0 for padding) once,
+  // ks, kd once per lane; with Sharing::particles: mass .. kgd once per particle
+  std::vector<T> valid;
+  // forces of the particles whose springs are under way: particle q at (q & (ring - 1)),
+  // components ring lanes apart (a block and the margin its springs reach beyond it)
+  int64_t ring = 1;
+  void AllocateForce(const Layout& layout) {
+    while (ring < kRun + layout.margin) ring *= 2;
+    force.assign(3 * ring * Lanes<T>(), T(0));
+  }
 };
 
-// `Integrate` for every particle of a group in place, its force then cleared (lanes
-// innermost; gravity and ground height per lane).
-template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
-void GroupParticles(Group<T>& g, int64_t n, T dt) {
+// `Integrate` for particles [lo, hi) of a group in place, their force then cleared
+// (lanes innermost; gravity and ground height per lane; kShared: particle parameters once).
+template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn, bool kShared>
+void GroupParticles(Group<T>& g, int64_t n, T dt, int64_t lo, int64_t hi) {
   constexpr int64_t L = Lanes<T>();
-  const int64_t nl = n * L;
+  const int64_t nl = n * L, rl = g.ring * L;
   const T* gravity = g.gravity.data();
   T* x = g.x.data();
   T* v = g.v.data();
-  T* f = g.force.data();
-  for (int64_t q = 0; q < n; ++q) {
+  for (int64_t q = lo; q < hi; ++q) {
+    T* f = g.force.data() + (q & (g.ring - 1)) * L;
     JAXSPRING_INDEPENDENT
     for (int64_t l = 0; l < L; ++l) {
-      const int64_t e = q * L + l;
-      Integrate<T, kDragOn, kGravityOn, kGroundOn>(x, v, x, v, nl, e, f[e], f[nl + e], f[2 * nl + e], g.mass[e],
-                                                   g.free[e], g.cdm[e], g.kg[e], g.kgd[e], gravity[l], gravity[L + l],
+      const int64_t e = q * L + l, o = kShared ? q : e;
+      Integrate<T, kDragOn, kGravityOn, kGroundOn>(x, v, x, v, nl, e, f[l], f[rl + l], f[2 * rl + l], g.mass[o],
+                                                   g.free[o], g.cdm[o], g.kg[o], g.kgd[o], gravity[l], gravity[L + l],
                                                    gravity[2 * L + l], g.height[l], dt);
-      f[e] = T(0);
-      f[nl + e] = T(0);
-      f[2 * nl + e] = T(0);
+      f[l] = T(0);
+      f[rl + l] = T(0);
+      f[2 * rl + l] = T(0);
     }
   }
 }
 
-template <typename T>
-void SimulateGroup(const Layout& layout, const Config& config, Group<T>& g) {
+// The springs whose a lie in block b of a group, their forces added to g.force (kShared:
+// Sharing::springs).
+template <typename T, bool kShared>
+void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
   constexpr int64_t L = Lanes<T>();
-  const int64_t n = layout.n, nl = n * L;
-  const T dt = static_cast<T>(config.dt);
-  using Particles = void (*)(Group<T>&, int64_t, T);
-  static const Particles table[8] = {
-      GroupParticles<T, false, false, false>, GroupParticles<T, true, false, false>,
-      GroupParticles<T, false, true, false>,  GroupParticles<T, true, true, false>,
-      GroupParticles<T, false, false, true>,  GroupParticles<T, true, false, true>,
-      GroupParticles<T, false, true, true>,   GroupParticles<T, true, true, true>};
-  const Particles particles = table[(config.flags & kDrag ? 1 : 0) + (config.flags & kGravity ? 2 : 0) +
-                                   (config.flags & kGround ? 4 : 0)];
+  const int64_t nl = layout.n * L, rl = g.ring * L, mask = g.ring - 1;
   const T* x = g.x.data();
   const T* v = g.v.data();
-  T* f = g.force.data();
   const T* rest = g.rest.data();
   const T* ks = g.ks.data();
   const T* kd = g.kd.data();
-  for (int64_t step = 0; step < config.steps; ++step) {
-    for (size_t family = 0; family < layout.runs.size(); ++family) {
-      const int64_t shift = layout.shift[family];
-      for (const Run& run : layout.runs[family]) {
-        for (int64_t j = 0; j < run.len; ++j) {
-          const int64_t a = (run.a + j) * L, b = (run.a + j + shift) * L, k = (run.k + j) * L;
-          JAXSPRING_INDEPENDENT
-          for (int64_t l = 0; l < L; ++l) {
-            const Geometry<T> g = SpringGeometry(x, v, nl, a + l, b + l, rest[k + l]);
-            const T m = ks[k + l] * g.e + kd[k + l] * g.closing;
-            const T f0 = m * g.u0, f1 = m * g.u1, f2 = m * g.u2;
-            f[a + l] += f0;
-            f[nl + a + l] += f1;
-            f[2 * nl + a + l] += f2;
-            f[b + l] -= f0;
-            f[nl + b + l] -= f1;
-            f[2 * nl + b + l] -= f2;
-          }
+  const T* valid = g.valid.data();
+  for (const Run& run : layout.blocks[block]) {
+    const int64_t shift = layout.shift[run.family];
+    for (int64_t j = 0; j < run.len; ++j) {
+      const int64_t a = (run.a + j) * L, b = (run.a + j + shift) * L, k = (run.k + j) * L;
+      T* fa = g.force.data() + ((run.a + j) & mask) * L;
+      T* fb = g.force.data() + ((run.a + j + shift) & mask) * L;
+      JAXSPRING_INDEPENDENT
+      for (int64_t l = 0; l < L; ++l) {
+        Geometry<T> g;
+        T m;
+        if (kShared) {  // valid is 1 for a spring (m exactly ks e + kd closing), 0 for padding
+          g = SpringGeometry(x, v, nl, a + l, b + l, rest[run.k + j]);
+          m = valid[run.k + j] * (ks[l] * g.e + kd[l] * g.closing);
+        } else {
+          g = SpringGeometry(x, v, nl, a + l, b + l, rest[k + l]);
+          m = ks[k + l] * g.e + kd[k + l] * g.closing;
         }
+        const T f0 = m * g.u0, f1 = m * g.u1, f2 = m * g.u2;
+        fa[l] += f0;
+        fa[rl + l] += f1;
+        fa[2 * rl + l] += f2;
+        fb[l] -= f0;
+        fb[rl + l] -= f1;
+        fb[2 * rl + l] -= f2;
       }
     }
-    particles(g, n, dt);
+  }
+}
+
+// `config.steps` steps of a group, block by block: the springs whose a lie in a block
+// complete the forces on its particles (every shift is positive), which then move;
+// springs still to come read only positions after the block.
+template <typename T>
+void SimulateGroup(const Layout& layout, const Config& config, Sharing sharing, Group<T>& g) {
+  const T dt = static_cast<T>(config.dt);
+  using Particles = void (*)(Group<T>&, int64_t, T, int64_t, int64_t);
+  static const Particles table[16] = {
+      GroupParticles<T, false, false, false, false>, GroupParticles<T, true, false, false, false>,
+      GroupParticles<T, false, true, false, false>,  GroupParticles<T, true, true, false, false>,
+      GroupParticles<T, false, false, true, false>,  GroupParticles<T, true, false, true, false>,
+      GroupParticles<T, false, true, true, false>,   GroupParticles<T, true, true, true, false>,
+      GroupParticles<T, false, false, false, true>,  GroupParticles<T, true, false, false, true>,
+      GroupParticles<T, false, true, false, true>,   GroupParticles<T, true, true, false, true>,
+      GroupParticles<T, false, false, true, true>,   GroupParticles<T, true, false, true, true>,
+      GroupParticles<T, false, true, true, true>,    GroupParticles<T, true, true, true, true>};
+  const Particles particles = table[(config.flags & kDrag ? 1 : 0) + (config.flags & kGravity ? 2 : 0) +
+                                    (config.flags & kGround ? 4 : 0) + (sharing.particles ? 8 : 0)];
+  const auto springs = sharing.springs ? GroupSprings<T, true> : GroupSprings<T, false>;
+  const int64_t blocks = static_cast<int64_t>(layout.blocks.size());
+  for (int64_t step = 0; step < config.steps; ++step) {
+    for (int64_t block = 0; block < blocks; ++block) {
+      springs(layout, g, block);
+      particles(g, layout.n, dt, block * kRun, block * kRun + BlockLength(layout, block));
+    }
   }
 }
 
 // Forward steps of a batch in groups (no stored states): members first .. first + L - 1
 // (the last member repeated to fill a group) in, positions and velocities out.
 template <typename T>
-void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch,
+void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch, Sharing sharing,
                    const std::function<Inputs<T>(int64_t)>& member, T* x, T* v) {
   constexpr int64_t L = Lanes<T>();
   const int64_t n = layout.n, groups = (batch + L - 1) / L;
@@ -968,9 +1037,28 @@ void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch,
   Team pool(threads);
   pool.Launch([&](int t) {
     Group<T> g;
-    for (auto* buffer : {&g.x, &g.v, &g.force}) buffer->assign(3 * n * L, T(0));
-    for (auto* buffer : {&g.rest, &g.ks, &g.kd}) buffer->assign(layout.padded * L, T(0));
-    for (auto* buffer : {&g.mass, &g.free, &g.cdm, &g.kg, &g.kgd}) buffer->assign(n * L, T(0));
+    for (auto* buffer : {&g.x, &g.v}) buffer->assign(3 * n * L, T(0));
+    g.AllocateForce(layout);
+    const Inputs<T> first = member(0);
+    if (sharing.springs) {
+      for (auto* buffer : {&g.rest, &g.valid}) buffer->assign(layout.padded, T(0));
+      for (auto* buffer : {&g.ks, &g.kd}) buffer->assign(L, T(0));
+      for (const Run& r : layout.valid) {
+        std::copy(first.rest + r.k, first.rest + r.k + r.len, g.rest.begin() + r.a);
+        std::fill(g.valid.begin() + r.a, g.valid.begin() + r.a + r.len, T(1));
+      }
+    } else {
+      for (auto* buffer : {&g.rest, &g.ks, &g.kd}) buffer->assign(layout.padded * L, T(0));
+    }
+    if (sharing.particles) {
+      g.mass.assign(first.mass, first.mass + n);
+      g.free.assign(first.free, first.free + n);
+      g.cdm.assign(first.cdm, first.cdm + n);
+      g.kg.assign(first.kg, first.kg + n);
+      g.kgd.assign(first.kgd, first.kgd + n);
+    } else {
+      for (auto* buffer : {&g.mass, &g.free, &g.cdm, &g.kg, &g.kgd}) buffer->assign(n * L, T(0));
+    }
     g.gravity.assign(3 * L, T(0));
     g.height.assign(L, T(0));
     for (int64_t group = t; group < groups; group += threads) {
@@ -981,24 +1069,31 @@ void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch,
           g.x[c * L + l] = x[i * 3 * n + c];
           g.v[c * L + l] = v[i * 3 * n + c];
         }
-        for (const Run& r : layout.valid) {
-          for (int64_t j = 0; j < r.len; ++j) {
-            g.rest[(r.a + j) * L + l] = p.rest[r.k + j];
-            g.ks[(r.a + j) * L + l] = p.ks[r.k + j];
-            g.kd[(r.a + j) * L + l] = p.kd[r.k + j];
+        if (sharing.springs) {
+          g.ks[l] = p.ks[0];
+          g.kd[l] = p.kd[0];
+        } else {
+          for (const Run& r : layout.valid) {
+            for (int64_t j = 0; j < r.len; ++j) {
+              g.rest[(r.a + j) * L + l] = p.rest[r.k + j];
+              g.ks[(r.a + j) * L + l] = p.ks[r.k + j];
+              g.kd[(r.a + j) * L + l] = p.kd[r.k + j];
+            }
           }
         }
-        for (int64_t q = 0; q < n; ++q) {
-          g.mass[q * L + l] = p.mass[q];
-          g.free[q * L + l] = p.free[q];
-          g.cdm[q * L + l] = p.cdm[q];
-          g.kg[q * L + l] = p.kg[q];
-          g.kgd[q * L + l] = p.kgd[q];
+        if (!sharing.particles) {
+          for (int64_t q = 0; q < n; ++q) {
+            g.mass[q * L + l] = p.mass[q];
+            g.free[q * L + l] = p.free[q];
+            g.cdm[q * L + l] = p.cdm[q];
+            g.kg[q * L + l] = p.kg[q];
+            g.kgd[q * L + l] = p.kgd[q];
+          }
         }
         for (int c = 0; c < 3; ++c) g.gravity[c * L + l] = p.gravity[c];
         g.height[l] = p.height[0];
       }
-      SimulateGroup(layout, config, g);
+      SimulateGroup(layout, config, sharing, g);
       for (int64_t l = 0; l < L && group * L + l < batch; ++l) {  // scatter them back
         const int64_t i = group * L + l;
         for (int64_t c = 0; c < 3 * n; ++c) {
@@ -1030,12 +1125,15 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
   const Config config{steps, flags, dt, stride};
   std::copy(x.typed_data(), x.typed_data() + x.element_count(), x_out->typed_data());
   std::copy(v.typed_data(), v.typed_data() + v.element_count(), v_out->typed_data());
-  if (batch > 1 && !store && GroupBytes(layout) <= kGroupBytes) {
-    AdvanceGroups<T>(
-        layout, config, batch,
-        [&](int64_t i) { return Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height); },
-        x_out->typed_data(), v_out->typed_data());
-    return ffi::Error::Success();
+  const std::function<Inputs<T>(int64_t)> member = [&](int64_t i) {
+    return Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+  };
+  if (batch > 1 && !store && layout.ascending) {
+    const Sharing sharing = FindSharing<T>(layout, batch, member);
+    if (GroupBytes(layout, sharing) <= kGroupBytes) {
+      AdvanceGroups<T>(layout, config, batch, sharing, member, x_out->typed_data(), v_out->typed_data());
+      return ffi::Error::Success();
+    }
   }
   ForMembers<T>(batch, layout, 0, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
     const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
