@@ -78,7 +78,6 @@ struct Layout {
   std::vector<int64_t> shift;
   std::vector<std::vector<Run>> runs;    // per family: pieces of its range, k = padded spring index
   std::vector<std::vector<Run>> blocks;  // per block of kRun particles: the runs whose a lie in it
-  std::vector<std::vector<Run>> real;    // the same without padding springs (lattice rows)
   std::vector<Run> valid;                // the real springs: a = padded index, k = spring index
 };
 
@@ -106,12 +105,6 @@ ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const
       for (int64_t i1 = 0; i1 < r[1]; ++i1) {
         const int64_t a = ((lo[0] + i0) * s[1] + lo[1] + i1) * s[2] + lo[2];
         layout.valid.push_back({layout.padded + a - first, start + (i0 * r[1] + i1) * r[2], r[2]});
-        layout.real.resize((layout.n + kRun - 1) / kRun);
-        for (int64_t c = a; c < a + r[2];) {  // cut at block boundaries
-          const int64_t end = std::min(a + r[2], (c / kRun + 1) * kRun);
-          layout.real[c / kRun].push_back({c, layout.padded + c - first, end - c, static_cast<int64_t>(f)});
-          c = end;
-        }
       }
     }
     std::vector<Run> pieces;  // at most kRun springs each
@@ -930,8 +923,9 @@ inline int64_t GroupBytes(const Layout& layout, Sharing sharing) {
 template <typename T>
 struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   std::vector<T> x, v, force, rest, ks, kd, mass, free, cdm, kg, kgd, gravity, height;
-  // with Sharing::springs: rest (padded) once, ks, kd once per lane; with
-  // Sharing::particles: mass .. kgd once per particle
+  // with Sharing::springs: rest (padded) and valid (1 for a spring, 0 for padding) once,
+  // ks, kd once per lane; with Sharing::particles: mass .. kgd once per particle
+  std::vector<T> valid;
   // forces of the particles whose springs are under way: particle q at (q & (ring - 1)),
   // components ring lanes apart (a block and the margin its springs reach beyond it)
   int64_t ring = 1;
@@ -965,8 +959,8 @@ void GroupParticles(Group<T>& g, int64_t n, T dt, int64_t lo, int64_t hi) {
   }
 }
 
-// The springs whose a lie in block b of a group (padding skipped), their forces added to
-// g.force (kShared: Sharing::springs).
+// The springs whose a lie in block b of a group, their forces added to g.force (kShared:
+// Sharing::springs).
 template <typename T, bool kShared>
 void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
   constexpr int64_t L = Lanes<T>();
@@ -976,12 +970,8 @@ void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
   const T* rest = g.rest.data();
   const T* ks = g.ks.data();
   const T* kd = g.kd.data();
-  alignas(64) T ks_lane[L], kd_lane[L];  // kShared: one value a lane (kept in registers)
-  if (kShared) {
-    std::copy(ks, ks + L, ks_lane);
-    std::copy(kd, kd + L, kd_lane);
-  }
-  for (const Run& run : layout.real[block]) {
+  const T* valid = g.valid.data();
+  for (const Run& run : layout.blocks[block]) {
     const int64_t shift = layout.shift[run.family];
     for (int64_t j = 0; j < run.len; ++j) {
       const int64_t a = (run.a + j) * L, b = (run.a + j + shift) * L, k = (run.k + j) * L;
@@ -991,9 +981,9 @@ void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
       for (int64_t l = 0; l < L; ++l) {
         Geometry<T> g;
         T m;
-        if (kShared) {
+        if (kShared) {  // valid is 1 for a spring (m exactly ks e + kd closing), 0 for padding
           g = SpringGeometry(x, v, nl, a + l, b + l, rest[run.k + j]);
-          m = ks_lane[l] * g.e + kd_lane[l] * g.closing;
+          m = valid[run.k + j] * (ks[l] * g.e + kd[l] * g.closing);
         } else {
           g = SpringGeometry(x, v, nl, a + l, b + l, rest[k + l]);
           m = ks[k + l] * g.e + kd[k + l] * g.closing;
@@ -1053,9 +1043,12 @@ void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch, Sh
     g.AllocateForce(layout);
     const Inputs<T> first = member(0);
     if (sharing.springs) {
-      g.rest.assign(layout.padded, T(0));
+      for (auto* buffer : {&g.rest, &g.valid}) buffer->assign(layout.padded, T(0));
       for (auto* buffer : {&g.ks, &g.kd}) buffer->assign(L, T(0));
-      for (const Run& r : layout.valid) std::copy(first.rest + r.k, first.rest + r.k + r.len, g.rest.begin() + r.a);
+      for (const Run& r : layout.valid) {
+        std::copy(first.rest + r.k, first.rest + r.k + r.len, g.rest.begin() + r.a);
+        std::fill(g.valid.begin() + r.a, g.valid.begin() + r.a + r.len, T(1));
+      }
     } else {
       for (auto* buffer : {&g.rest, &g.ks, &g.kd}) buffer->assign(layout.padded * L, T(0));
     }
