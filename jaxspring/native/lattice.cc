@@ -927,11 +927,13 @@ struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   // ks, kd once per lane; with Sharing::particles: mass .. kgd once per particle
   std::vector<T> valid;
   // forces of the particles whose springs are under way: particle q at (q & (ring - 1)),
-  // components ring lanes apart (a block and the margin its springs reach beyond it)
-  int64_t ring = 1;
+  // components `stride` lanes apart (a block and the margin its springs reach beyond it;
+  // the stride is not a multiple of 4 KiB, whose three components would share cache sets)
+  int64_t ring = 1, stride = 0;
   void AllocateForce(const Layout& layout) {
     while (ring < kRun + layout.margin) ring *= 2;
-    force.assign(3 * ring * Lanes<T>(), T(0));
+    stride = (ring + 5) * Lanes<T>();
+    force.assign(3 * stride, T(0));
   }
 };
 
@@ -940,7 +942,7 @@ struct Group {  // the inputs and state of Lanes<T>() members, member innermost
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn, bool kShared>
 void GroupParticles(Group<T>& g, int64_t n, T dt, int64_t lo, int64_t hi) {
   constexpr int64_t L = Lanes<T>();
-  const int64_t nl = n * L, rl = g.ring * L;
+  const int64_t nl = n * L, rl = g.stride;
   const T* gravity = g.gravity.data();
   T* x = g.x.data();
   T* v = g.v.data();
@@ -964,7 +966,7 @@ void GroupParticles(Group<T>& g, int64_t n, T dt, int64_t lo, int64_t hi) {
 template <typename T, bool kShared>
 void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
   constexpr int64_t L = Lanes<T>();
-  const int64_t nl = layout.n * L, rl = g.ring * L, mask = g.ring - 1;
+  const int64_t nl = layout.n * L, rl = g.stride, mask = g.ring - 1;
   const T* x = g.x.data();
   const T* v = g.v.data();
   const T* rest = g.rest.data();
