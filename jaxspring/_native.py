@@ -139,9 +139,9 @@ def spring_force(x, v, pairs, rest, ks, kd):
 # Whole steps of a lattice scene (jaxspring/native/lattice.cc): springs, drag, gravity
 # and ground, semi-implicit Euler, `steps` steps in one call. Its VJP is the second
 # kernel: the forward call keeps the state every ~sqrt(steps) steps; the backward call
-# replays one such segment at a time (keeping its states in a cache-sized buffer) and
-# runs the exact reverse pass over it. Memory ~2 sqrt(steps) states, time about two
-# forward passes plus the reverse pass.
+# replays one such segment at a time on a second thread (keeping its states) while the
+# first runs the exact reverse pass over the segment before. Memory ~3 sqrt(steps)
+# states; time one forward pass plus the reverse pass (the replay runs alongside).
 
 _DRAG, _GRAVITY, _GROUND = 1, 2, 4
 

@@ -70,13 +70,13 @@ struct Run {
 // A family with shift s is stepped as one run over the particle range [first, first +
 // count): every a there, b = a + s, including "padding" springs that join the end of a
 // lattice row to the start of the next. Those get ks = kd = 0 (zero force, zero
-// derivatives), and the loops run long and unit-stride instead of row by row.
+// derivatives), and the loops run long and unit-stride instead of row by row. The range
+// is cut where blocks of kRun particles begin: a pass takes its springs block by block.
 struct Layout {
   int64_t n = 0, springs = 0, padded = 0;  // particles, springs, springs with padding
   int64_t margin = 0;                      // the largest |shift|
   bool ascending = true;                   // every shift > 0: a spring's b comes after its a
   std::vector<int64_t> shift;
-  std::vector<std::vector<Run>> runs;    // per family: pieces of its range, k = padded spring index
   std::vector<std::vector<Run>> blocks;  // per block of kRun particles: the runs whose a lie in it
   std::vector<Run> valid;                // the real springs: a = padded index, k = spring index
 };
@@ -107,10 +107,8 @@ ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const
         layout.valid.push_back({layout.padded + a - first, start + (i0 * r[1] + i1) * r[2], r[2]});
       }
     }
-    std::vector<Run> pieces;  // at most kRun springs each
-    for (int64_t j = 0; j < count; j += kRun) pieces.push_back({first + j, layout.padded + j, std::min(kRun, count - j)});
     layout.blocks.resize((layout.n + kRun - 1) / kRun);
-    for (int64_t a = first; a < first + count;) {  // the same range cut at block boundaries
+    for (int64_t a = first; a < first + count;) {  // k = padded spring index
       const int64_t end = std::min(first + count, (a / kRun + 1) * kRun);
       layout.blocks[a / kRun].push_back({a, layout.padded + a - first, end - a, static_cast<int64_t>(f)});
       a = end;
@@ -119,7 +117,6 @@ ffi::ErrorOr<Layout> BuildLayout(ffi::Span<const int64_t> shape, ffi::Span<const
     layout.shift.push_back(shift);
     layout.margin = std::max(layout.margin, std::abs(shift));
     layout.ascending = layout.ascending && shift > 0;
-    layout.runs.push_back(std::move(pieces));
     layout.padded += count;
     start += r[0] * r[1] * r[2];
   }
