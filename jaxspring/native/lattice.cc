@@ -157,6 +157,7 @@ struct Rows {
     comps = components;
     margin = (layout.margin + kAlign - 1) / kAlign * kAlign;
     width = (layout.n + 2 * margin + kAlign - 1) / kAlign * kAlign;
+    if (width * sizeof(T) % 4096 == 0) width += kAlign;  // rows 4 KiB apart would share cache sets
     data.assign(layout.shift.size() * comps * width + kAlign, T(0));
     const auto address = reinterpret_cast<std::uintptr_t>(data.data());
     base = data.data() + (64 - address % 64) % 64 / sizeof(T);
@@ -395,17 +396,11 @@ template <typename T>
 void Step(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* x, const T* v, T* xo, T* vo,
           Rows<T>& rows, Team& team, int64_t lo, int64_t hi, T* inv = nullptr) {
   const int64_t n = layout.n;
+  const auto spring_run = inv ? SpringRun<T, true> : SpringRun<T, false>;
   for (int64_t b = lo; b < hi; ++b) {
     for (const Run& run : layout.blocks[b]) {
-      const int64_t shift = layout.shift[run.family];
-      T* row = rows.At(run.family) + run.a;
-      if (inv) {
-        SpringRun<T, true>(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row,
-                           rows.width, inv + run.k);
-      } else {
-        SpringRun<T, false>(x, v, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len, row,
-                            rows.width, nullptr);
-      }
+      spring_run(x, v, n, run.a, run.a + layout.shift[run.family], p.rest + run.k, p.ks + run.k, p.kd + run.k,
+                 run.len, rows.At(run.family) + run.a, rows.width, inv ? inv + run.k : nullptr);
     }
   }
   team.Sync();
@@ -620,17 +615,12 @@ void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConsta
   const auto reverse_particles = PickReverseParticles(k);
   const bool springs_after = at.x_after != nullptr, fused = team.size() == 1 && layout.ascending;
   alignas(64) T springs[6 * kRun];
+  const auto reverse_run = at.inv_after ? ReverseRun<T, true> : ReverseRun<T, false>;
   auto spring_pass = [&](int64_t b) {
     for (const Run& run : layout.blocks[b]) {
-      const int64_t shift = layout.shift[run.family];
-      T* row = rows.At(run.family) + run.a;
-      if (at.inv_after) {
-        ReverseRun<T, true>(at.x_after, at.v_after, gf_after, n, run.a, run.a + shift, p.rest + run.k, p.ks + run.k,
-                            p.kd + run.k, run.len, out, run.k, row, rows.width, at.inv_after + run.k);
-      } else {
-        ReverseRun<T, false>(at.x_after, at.v_after, gf_after, n, run.a, run.a + shift, p.rest + run.k,
-                             p.ks + run.k, p.kd + run.k, run.len, out, run.k, row, rows.width, nullptr);
-      }
+      reverse_run(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
+                  p.ks + run.k, p.kd + run.k, run.len, out, run.k, rows.At(run.family) + run.a, rows.width,
+                  at.inv_after ? at.inv_after + run.k : nullptr);
     }
   };
   auto particle_pass = [&](int64_t b) {
