@@ -162,7 +162,6 @@ struct Rows {
     const auto address = reinterpret_cast<std::uintptr_t>(data.data());
     base = data.data() + (64 - address % 64) % 64 / sizeof(T);
   }
-  void Clear() { std::fill(data.begin(), data.end(), T(0)); }
   T* At(size_t family) { return base + family * comps * width + margin; }  // component 0, particle 0
   const T* At(size_t family) const { return base + family * comps * width + margin; }
 };
@@ -673,7 +672,8 @@ struct Workspace {
     }
   }
   // the member's spring parameters in padded order (zero for padding), and their
-  // cotangents (and the reverse rows) cleared
+  // cotangents cleared (the rows need no clearing: a pass writes every spring's entry
+  // before it reads it, and entries without a spring stay zero)
   void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents) {
     for (auto* buffer : {&rest, &ks, &kd}) buffer->assign(layout.padded, T(0));
     for (const Run& r : layout.valid) {
@@ -681,10 +681,7 @@ struct Workspace {
       std::copy(p.ks + r.k, p.ks + r.k + r.len, ks.data() + r.a);
       std::copy(p.kd + r.k, p.kd + r.k + r.len, kd.data() + r.a);
     }
-    if (cotangents) {
-      ct.assign(3 * layout.padded, T(0));
-      reverse.Clear();
-    }
+    if (cotangents) ct.assign(3 * layout.padded, T(0));
   }
   Inputs<T> Padded(Inputs<T> p) const {
     p.rest = rest.data();
