@@ -55,8 +55,11 @@ namespace {
 
 constexpr int64_t kRun = 256;  // longest run of springs or particles processed at once
 constexpr int64_t kDrag = 1, kGravity = 2, kGround = 4;  // flags
-// Springs in one lattice above which a second thread pays for its two barriers a step.
-constexpr int64_t kSpringsForThreads = 60000;
+// Springs in one lattice above which a second thread pays for its two barriers a step
+// (measured, 2,000 steps: a 100 x 100 cloth, 39k springs, 42-45 ms on two threads against
+// 80-85 on one; at 45 x 45 and 60 x 60 two threads were often twice as slow, as the
+// cores exchange the cache lines at their boundary every step; even at 80 x 80).
+constexpr int64_t kSpringsForThreads = 30000;
 // Largest buffer of replayed spring lengths kept for the reverse pass (per segment):
 // while it stays in the cache it saves the reverse pass a square root and a division
 // per spring; beyond (measured: 7 MB for a 100 x 100 cloth) it costs more than it saves.
