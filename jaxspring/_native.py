@@ -23,6 +23,7 @@ Backward formulas, per spring, with cf = ct_a - ct_b (the force's cotangent):
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import functools
 import math
 import sys
@@ -147,11 +148,16 @@ _DRAG, _GRAVITY, _GROUND = 1, 2, 4
 
 
 def _lattice_inputs(model, params, dtype):
-    """The kernel's parameter arrays, one value per spring / particle, in `dtype`."""
+    """The kernel's parameter arrays, one value per spring / particle, in `dtype`; ks and kd
+    as one value when they are scalars (the kernel then sums their cotangents itself)."""
     springs, particles = model.spring_count, model.particle_count
 
     def per(value, count):
         return jnp.broadcast_to(jnp.asarray(value, dtype), (count,))
+
+    def spring_values(value):
+        value = jnp.asarray(value, dtype)
+        return jnp.reshape(value, (1,)) if value.ndim == 0 else per(value, springs)
 
     zeros = jnp.zeros((particles,), dtype)
     cdm = per(params.cd, particles) * model.drag.astype(dtype) if model.has("drag") else zeros
@@ -159,8 +165,8 @@ def _lattice_inputs(model, params, dtype):
     ground = model.has("ground")
     return (
         model.rest_length.astype(dtype),
-        per(params.ks, springs),
-        per(params.kd, springs),
+        spring_values(params.ks),
+        spring_values(params.kd),
         model.mass.astype(dtype),
         (~model.pinned).astype(dtype),
         cdm,
@@ -205,26 +211,41 @@ def _advance(config, x, v, *inputs):
     return x, v
 
 
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True)
+class _Needs:
+    """Which parameter inputs are differentiated (bit i: inputs[i]), known when tracing."""
+
+    bits: int
+
+
 def _advance_fwd(config, x, v, *inputs):
+    # symbolic zeros: every argument comes with whether it is differentiated; the
+    # backward call then skips the cotangents nobody asked for (rest lengths, masses)
+    needs = _Needs(sum(1 << i for i, a in enumerate(inputs) if a.perturbed))
+    x, v, inputs = x.value, v.value, tuple(a.value for a in inputs)
     x_end, v_end, states = _lattice_call(config, x, v, inputs, store=True)
-    return (x_end, v_end), (states, v_end, inputs)
+    return (x_end, v_end), (states, v_end, inputs, needs)
 
 
 def _advance_bwd(config, residuals, cotangents):
-    states, v_end, inputs = residuals
-    ct_x, ct_v = cotangents
+    states, v_end, inputs, needs = residuals
     dtype = v_end.dtype
+    ct_x, ct_v = (
+        jnp.zeros(v_end.shape, dtype) if isinstance(c, jax.custom_derivatives.SymbolicZero) else c.astype(dtype)
+        for c in cotangents
+    )
     target = "jaxspring_lattice_backward_f32" if dtype == jnp.float32 else "jaxspring_lattice_backward_f64"
     shapes = [jax.ShapeDtypeStruct(a.shape, dtype) for a in (v_end, v_end)]
     shapes += [jax.ShapeDtypeStruct(a.shape, dtype) for i, a in enumerate(inputs) if i != 4]  # not `free`
     call = jax.ffi.ffi_call(target, shapes, vmap_method="broadcast_all")
-    ct = call(states, v_end, *inputs, ct_x.astype(dtype), ct_v.astype(dtype), **_attributes(config))
+    ct = call(states, v_end, *inputs, ct_x, ct_v, **_attributes(config), needs=np.int64(needs.bits))
     ct_state, ct_inputs = ct[:2], list(ct[2:])
     ct_inputs.insert(4, jnp.zeros_like(inputs[4]))  # the pinned mask is not differentiable
     return (*ct_state, *ct_inputs)
 
 
-_advance.defvjp(_advance_fwd, _advance_bwd)
+_advance.defvjp(_advance_fwd, _advance_bwd, symbolic_zeros=True)
 
 
 def lattice_advance(model, params, x, v, steps: int):

@@ -238,7 +238,43 @@ def test_lattice_kernel_threads_on_a_large_lattice():
         return jnp.sum(js.rollout(m, p, s, 6, 6).x[-1] ** 2)
 
     assert_gradients_match(loss, native, model, (params, state), "100x100")
+    by_params = jax.grad(lambda p, m: loss(m, p, state))  # the lean spring pass on two threads
+    for a, b in zip(jax.tree_util.tree_leaves(by_params(params, native)), jax.tree_util.tree_leaves(by_params(params, model))):
+        assert relative(a, b) < 1e-11
     single = js.State(x=state.x.astype(jnp.float32), v=state.v.astype(jnp.float32))
     a = js.rollout(native, params, single, 20, 20).x
     b = js.rollout(model, params, state, 20, 20).x
     assert a.dtype == jnp.float32 and float(jnp.max(jnp.abs(a - b))) < 1e-4
+
+
+def test_lattice_gradients_of_only_what_is_asked_for(scenes):
+    """The backward call computes only the cotangents asked for: with scalar ks and kd and
+    no model gradient it sums their cotangents per lane (the lean spring pass); a scalar
+    ks beside a per-spring kd, and masses without rest lengths, take the other branches.
+    Every one against the pure-JAX gradient (float64), batched too."""
+    scene = scenes["cloth"]
+    model, params, state = scene.model, scene.params, scene.state
+    native = model.replace(backend="native")
+    state = state.replace(v=0.2 * jnp.asarray(np.random.default_rng(4).normal(size=state.v.shape)))
+    steps = 30
+    assert jnp.ndim(params.ks) == 0 and jnp.ndim(params.kd) == 0
+
+    def loss(m, p):
+        t = js.rollout(m, p, state, steps, steps // 3)
+        return jnp.sum(jnp.sin(3.0 * t.x)) + jnp.sum(t.v[-1] ** 2)
+
+    kd_per_spring = params.kd * jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, model.spring_count))
+    for name, p in (("scalar ks, kd", params), ("scalar ks, kd per spring", params.replace(kd=kd_per_spring))):
+        a, b = jax.grad(loss, argnums=1)(native, p), jax.grad(loss, argnums=1)(model, p)
+        for key in ("ks", "kd", "cd"):
+            assert jnp.shape(getattr(a, key)) == jnp.shape(getattr(b, key)), (name, key)
+            assert relative(getattr(a, key), getattr(b, key)) < 1e-11, (name, key)
+    # the masses' cotangent without the rest lengths'
+    by_mass = lambda mass, m: loss(m.replace(mass=mass), params)  # noqa: E731
+    assert relative(jax.grad(by_mass)(model.mass, native), jax.grad(by_mass)(model.mass, model)) < 1e-11
+    # a batch of scalar ks: one lean backward per member
+    ks = params.ks * jnp.array([0.8, 1.0, 1.3])
+    by_ks = lambda k, m: loss(m, params.replace(ks=k))  # noqa: E731
+    batched = jax.vmap(jax.grad(by_ks), in_axes=(0, None))(ks, native)
+    for i in range(3):
+        assert relative(batched[i], jax.grad(by_ks)(ks[i], model)) < 1e-11

@@ -35,6 +35,7 @@
 #include <memory>
 #include <mutex>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include "xla/ffi/api/ffi.h"
@@ -55,6 +56,9 @@ namespace {
 
 constexpr int64_t kRun = 256;  // longest run of springs or particles processed at once
 constexpr int64_t kDrag = 1, kGravity = 2, kGround = 4;  // flags
+// `needs` of a backward call: the inputs whose cotangents are asked for (bit i: the i-th
+// parameter input, rest = 0 .. height = 9); the others may be returned as zeros
+constexpr int64_t kNeedRest = 1 << 0, kNeedMass = 1 << 3;
 // Springs in one lattice above which a second thread pays for its two barriers a step
 // (measured, 2,000 steps: a 100 x 100 cloth, 39k springs, 42-45 ms on two threads against
 // 80-85 on one; at 45 x 45 and 60 x 60 two threads were often twice as slow, as the
@@ -167,6 +171,7 @@ struct Rows {
   }
   T* At(size_t family) { return base + family * comps * width + margin; }  // component 0, particle 0
   const T* At(size_t family) const { return base + family * comps * width + margin; }
+  int64_t Bytes() const { return static_cast<int64_t>(data.size() * sizeof(T)); }
 };
 
 template <typename T>
@@ -444,13 +449,28 @@ struct Cotangents {
   T *x, *v, *rest, *ks, *kd, *mass, *cdm, *gravity, *kg, *kgd, *height;
 };
 
+// What the reverse pass computes besides the state's cotangents: all parameter
+// cotangents, but not the masses' unless asked; and with `lean` (ks and kd one value
+// per member, no rest-length cotangent asked for) the springs' pass reads the scalars
+// and `valid` (1 for a spring, 0 for padding, padded order) instead of per-spring ks
+// and kd, and sums the cotangents of ks and kd per lane (`Partials`) instead of per
+// spring: two streams of memory instead of seven.
+template <typename T>
+struct Wanted {
+  bool mass = true, lean = false;
+  T ks = T(0), kd = T(0);
+  const T* valid = nullptr;
+};
+
 // One thread's sums for the parameters shared by all particles (gravity's three
-// components, the ground height), kept per lane of a particle block: Partials[q * kRun +
-// j] sums quantity q over particles i0 + j of every block and step (a sum into one
-// scalar would not vectorise).
+// components, the ground height) and, in a lean reverse pass (`Wanted`), by all springs
+// (ks, kd), kept per lane of a block: Partials[q * kRun + j] sums quantity q over
+// particles (springs) i0 + j of every block (run) and step (a sum into one scalar would
+// not vectorise).
 template <typename T>
 struct Partials {
-  std::vector<T> lanes = std::vector<T>(4 * kRun, T(0));
+  static constexpr int kGravity = 0, kHeight = 3, kKs = 4, kKd = 5;
+  std::vector<T> lanes = std::vector<T>(6 * kRun, T(0));
   T Total(int q) const {
     T sum = 0;
     for (int64_t j = 0; j < kRun; ++j) sum += lanes[q * kRun + j];
@@ -463,7 +483,7 @@ struct Partials {
 // out.v, then writes those of x, v through the integrator, drag, gravity and ground
 // (the springs' part of this step follows in the next particle pass) and the cotangent
 // of the force to gf.
-template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn>
+template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn, bool kMass>
 void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotangents<T>& out, const T* x,
                              const T* v, const T* v_next, T* gf, const T* springs, int64_t n, int64_t i0, int64_t len,
                              T* sums) {
@@ -505,13 +525,13 @@ void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotan
     T c2 = on ? y2 + dt * x2 : T(0);
     const T f0 = c0 * dt / m, f1 = c1 * dt / m, f2 = c2 * dt / m;
     // dv'/dm = -(dt F) / m^2 = -(v' - v) / m for free particles
-    T cm = -(c0 * (v_next[i] - w0) + c1 * (v_next[n + i] - w1) + c2 * (v_next[2 * n + i] - w2)) / m;
+    T cm = kMass ? -(c0 * (v_next[i] - w0) + c1 * (v_next[n + i] - w1) + c2 * (v_next[2 * n + i] - w2)) / m : T(0);
     T cx1_out = x1;
     if (kGravityOn) {
       cg0[j] += m * f0;
       cg1[j] += m * f1;
       cg2[j] += m * f2;
-      cm += g0 * f0 + g1 * f1 + g2 * f2;
+      if (kMass) cm += g0 * f0 + g1 * f1 + g2 * f2;
     }
     if (kDragOn) {
       const T speed = std::sqrt(w0 * w0 + w1 * w1 + w2 * w2);
@@ -531,7 +551,7 @@ void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotan
       cx1_out -= kg[i] * normal;
       c1 -= kgd[i] * normal;
     }
-    cmass[i] += cm;
+    if (kMass) cmass[i] += cm;
     cx0[i] = x0;
     cx1[i] = cx1_out;
     cx2[i] = x2;
@@ -549,13 +569,17 @@ using ReverseParticlesFn = void (*)(const Inputs<T>&, const StepConstants<T>&, c
                                     const T*, const T*, T*, const T*, int64_t, int64_t, int64_t, T*);
 
 template <typename T>
-ReverseParticlesFn<T> PickReverseParticles(const StepConstants<T>& k) {
-  static const ReverseParticlesFn<T> table[8] = {
-      ReverseParticles<T, false, false, false>, ReverseParticles<T, true, false, false>,
-      ReverseParticles<T, false, true, false>,  ReverseParticles<T, true, true, false>,
-      ReverseParticles<T, false, false, true>,  ReverseParticles<T, true, false, true>,
-      ReverseParticles<T, false, true, true>,   ReverseParticles<T, true, true, true>};
-  return table[(k.drag ? 1 : 0) + (k.gravity ? 2 : 0) + (k.ground ? 4 : 0)];
+ReverseParticlesFn<T> PickReverseParticles(const StepConstants<T>& k, bool mass) {
+  static const ReverseParticlesFn<T> table[16] = {
+      ReverseParticles<T, false, false, false, false>, ReverseParticles<T, true, false, false, false>,
+      ReverseParticles<T, false, true, false, false>,  ReverseParticles<T, true, true, false, false>,
+      ReverseParticles<T, false, false, true, false>,  ReverseParticles<T, true, false, true, false>,
+      ReverseParticles<T, false, true, true, false>,   ReverseParticles<T, true, true, true, false>,
+      ReverseParticles<T, false, false, false, true>,  ReverseParticles<T, true, false, false, true>,
+      ReverseParticles<T, false, true, false, true>,   ReverseParticles<T, true, true, false, true>,
+      ReverseParticles<T, false, false, true, true>,   ReverseParticles<T, true, false, true, true>,
+      ReverseParticles<T, false, true, true, true>,    ReverseParticles<T, true, true, true, true>};
+  return table[(k.drag ? 1 : 0) + (k.gravity ? 2 : 0) + (k.ground ? 4 : 0) + (mass ? 8 : 0)];
 }
 
 // Reverse of `SpringRun`: from gf, the cotangent of the force, writes the springs'
@@ -592,6 +616,35 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
   }
 }
 
+// `ReverseRun` for scalar ks, kd (`Wanted::lean`): valid[j] masks padding; the
+// cotangents of ks and kd go to sums[j], sums[kRun + j]; none for the rest lengths.
+template <typename T, bool kKnown>
+void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, T ks, T kd,
+                    const T* valid, int64_t len, T* sums, T* out, int64_t width, const T* inv_in) {
+  T* cks = sums;
+  T* ckd = sums + kRun;
+  JAXSPRING_INDEPENDENT
+  for (int64_t j = 0; j < len; ++j) {
+    const Geometry<T> g = SpringGeometry<T, kKnown>(x, v, n, a + j, b + j, rest[j], kKnown ? inv_in[j] : T(0));
+    const T u0 = g.u0, u1 = g.u1, u2 = g.u2, w0 = g.w0, w1 = g.w1, w2 = g.w2, inv = g.inv;
+    const T e = g.e, closing = g.closing, on = valid[j];
+    const T m = (ks * e + kd * closing) * on;  // zero for padding, as below
+    const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j], c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
+    const T uc = (u0 * c0 + u1 * c1 + u2 * c2) * on;
+    const T cc = kd * uc;
+    const T cl = ks * uc - inv * (m * uc + closing * cc);
+    const T p = inv * m, q = inv * cc;
+    cks[j] += e * uc;
+    ckd[j] += closing * uc;
+    out[j] = p * c0 + q * w0 + cl * u0;
+    out[width + j] = p * c1 + q * w1 + cl * u1;
+    out[2 * width + j] = p * c2 + q * w2 + cl * u2;
+    out[3 * width + j] = u0 * cc;
+    out[4 * width + j] = u1 * cc;
+    out[5 * width + j] = u2 * cc;
+  }
+}
+
 // Particle state of the reverse pass at one step: the state (x, v) at its start, and
 // after it (x_after, v_after; x_after null when this is the last step of the rollout:
 // nothing after it to take the springs' part from).
@@ -609,17 +662,25 @@ struct ReverseStep {
 // away, from cache); a team runs them one after the other with a barrier in between.
 template <typename T>
 void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const ReverseStep<T>& at,
-                      bool finish, const T* gf_after, T* gf, const Cotangents<T>& out, Rows<T>& rows,
-                      Partials<T>& partials, Team& team, int t) {
+                      bool finish, const T* gf_after, T* gf, const Cotangents<T>& out, const Wanted<T>& wanted,
+                      Rows<T>& rows, Partials<T>& partials, Team& team, int t) {
   const int64_t n = layout.n;
   int64_t lo, hi;
   Share(layout, t, team.size(), &lo, &hi);
-  const auto reverse_particles = PickReverseParticles(k);
+  const auto reverse_particles = PickReverseParticles(k, wanted.mass);
   const bool springs_after = at.x_after != nullptr, fused = team.size() == 1 && layout.ascending;
   alignas(64) T springs[6 * kRun];
   const auto reverse_run = at.inv_after ? ReverseRun<T, true> : ReverseRun<T, false>;
+  const auto reverse_lean = at.inv_after ? ReverseRunLean<T, true> : ReverseRunLean<T, false>;
+  T* spring_sums = partials.lanes.data() + Partials<T>::kKs * kRun;
   auto spring_pass = [&](int64_t b) {
     for (const Run& run : layout.blocks[b]) {
+      if (wanted.lean) {
+        reverse_lean(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
+                     wanted.ks, wanted.kd, wanted.valid + run.k, run.len, spring_sums, rows.At(run.family) + run.a,
+                     rows.width, at.inv_after ? at.inv_after + run.k : nullptr);
+        continue;
+      }
       reverse_run(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
                   p.ks + run.k, p.kd + run.k, run.len, out, run.k, rows.At(run.family) + run.a, rows.width,
                   at.inv_after ? at.inv_after + run.k : nullptr);
@@ -663,20 +724,34 @@ inline int Threads(int64_t batch, const Layout& layout) {
 // Buffers of one team working on one member at a time.
 template <typename T>
 struct Workspace {
-  Workspace(const Layout& layout, int threads, int64_t segment = 0) : partials(threads) {
+  // segment > 0: for backward calls; pipelined: two buffers of replayed states
+  Workspace(const Layout& layout, int threads, int64_t segment, bool pipelined)
+      : layout_(&layout), threads_(threads), segment_(segment), pipelined_(pipelined), partials(threads) {
     forward.Allocate(layout, 3);
     if (segment > 0) {
       const int64_t n = layout.n;
       gf.resize(6 * n);  // two: the cotangent of the force at a step and at the step after
-      states.resize(segment * 6 * n);
       // 1 / length of every spring at every replayed state, while it stays small
-      if (segment * layout.padded * static_cast<int64_t>(sizeof(T)) <= kKeepBytes) invs.resize(segment * layout.padded);
+      const bool keep = segment * layout.padded * static_cast<int64_t>(sizeof(T)) <= kKeepBytes;
+      for (int b = 0; b < (pipelined ? 2 : 1); ++b) {
+        states[b].resize(segment * 6 * n);
+        if (keep) invs[b].resize(segment * layout.padded);
+      }
       reverse.Allocate(layout, 6);
     }
   }
+  bool Fits(const Layout& layout, int threads, int64_t segment, bool pipelined) const {
+    return layout_ == &layout && threads_ == threads && segment_ == segment && pipelined_ == pipelined;
+  }
+  int64_t Bytes() const {
+    return static_cast<int64_t>(sizeof(T)) * static_cast<int64_t>(states[0].size() + states[1].size() +
+                                                                 invs[0].size() + invs[1].size() + gf.size()) +
+           forward.Bytes() + reverse.Bytes();
+  }
   // the member's spring parameters in padded order (zero for padding), and their
   // cotangents cleared (the rows need no clearing: a pass writes every spring's entry
-  // before it reads it, and entries without a spring stay zero)
+  // before it reads it, and entries without a spring stay zero); for a lean reverse
+  // pass the mask of real springs
   void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents) {
     for (auto* buffer : {&rest, &ks, &kd}) buffer->assign(layout.padded, T(0));
     for (const Run& r : layout.valid) {
@@ -685,6 +760,13 @@ struct Workspace {
       std::copy(p.kd + r.k, p.kd + r.k + r.len, kd.data() + r.a);
     }
     if (cotangents) ct.assign(3 * layout.padded, T(0));
+    if (wanted.lean) {
+      valid.assign(layout.padded, T(0));
+      for (const Run& r : layout.valid) std::fill(valid.begin() + r.a, valid.begin() + r.a + r.len, T(1));
+      wanted.valid = valid.data();
+      wanted.ks = p.ks[0];
+      wanted.kd = p.kd[0];
+    }
   }
   Inputs<T> Padded(Inputs<T> p) const {
     p.rest = rest.data();
@@ -698,19 +780,77 @@ struct Workspace {
     out.kd = ct.data() + 2 * padded;
     return out;
   }
-  void Unpad(const Layout& layout, const Cotangents<T>& out) const {  // adds the real springs' cotangents
+  // adds the real springs' cotangents (one sum for a scalar ks or kd), with the lanes'
+  void Unpad(const Layout& layout, const Cotangents<T>& out, bool ks_scalar, bool kd_scalar) const {
     const int64_t padded = layout.padded;
     for (const Run& r : layout.valid) {
       for (int64_t j = 0; j < r.len; ++j) {
         out.rest[r.k + j] += ct[r.a + j];
-        out.ks[r.k + j] += ct[padded + r.a + j];
-        out.kd[r.k + j] += ct[2 * padded + r.a + j];
+        out.ks[ks_scalar ? 0 : r.k + j] += ct[padded + r.a + j];
+        out.kd[kd_scalar ? 0 : r.k + j] += ct[2 * padded + r.a + j];
       }
     }
+    for (const Partials<T>& sums : partials) {
+      for (int c = 0; c < 3; ++c) out.gravity[c] += sums.Total(Partials<T>::kGravity + c);
+      out.height[0] += sums.Total(Partials<T>::kHeight);
+      out.ks[0] += sums.Total(Partials<T>::kKs);  // zero unless lean
+      out.kd[0] += sums.Total(Partials<T>::kKd);
+    }
   }
+ private:
+  const Layout* layout_;
+  int threads_;
+  int64_t segment_;
+  bool pipelined_;
+
+ public:
   Rows<T> forward, reverse;  // spring rows of the forward steps (and replays), of the reverse pass
-  std::vector<T> gf, states, invs, rest, ks, kd, ct;
+  std::vector<T> states[2], invs[2];  // replayed states (and 1 / lengths), twice when pipelined
+  std::vector<T> gf, rest, ks, kd, ct, valid;
+  Wanted<T> wanted;
   std::vector<Partials<T>> partials;
+};
+
+// Workspaces outlive their call, a few of them: a fresh one costs its page faults, more
+// than a millisecond per backward call of the seed cloth (its replayed states and
+// lengths are some MB). Calls from several threads each take their own.
+constexpr size_t kCachedWorkspaces = 4;
+constexpr int64_t kCachedBytes = 64 << 20;  // larger ones are not kept
+
+template <typename T>
+class WorkspaceCache {
+ public:
+  static std::unique_ptr<Workspace<T>> Take(const Layout& layout, int threads, int64_t segment, bool pipelined) {
+    {
+      std::lock_guard<std::mutex> lock(Mutex());
+      auto& kept = Kept();
+      for (auto it = kept.rbegin(); it != kept.rend(); ++it) {
+        if ((*it)->Fits(layout, threads, segment, pipelined)) {
+          std::unique_ptr<Workspace<T>> found = std::move(*it);
+          kept.erase(std::next(it).base());
+          return found;
+        }
+      }
+    }
+    return std::make_unique<Workspace<T>>(layout, threads, segment, pipelined);
+  }
+  static void Give(std::unique_ptr<Workspace<T>> work) {
+    if (work->Bytes() > kCachedBytes) return;
+    std::lock_guard<std::mutex> lock(Mutex());
+    auto& kept = Kept();
+    kept.push_back(std::move(work));
+    if (kept.size() > kCachedWorkspaces) kept.erase(kept.begin());  // the least recently given
+  }
+
+ private:
+  static std::mutex& Mutex() {
+    static std::mutex mutex;
+    return mutex;
+  }
+  static std::vector<std::unique_ptr<Workspace<T>>>& Kept() {
+    static std::vector<std::unique_ptr<Workspace<T>>> kept;
+    return kept;
+  }
 };
 
 // Re-runs segment `segment` (config.stride steps, fewer for the last) from its stored
@@ -755,7 +895,7 @@ void ReverseSegment(const Layout& layout, const Inputs<T>& p, const StepConstant
                             kept ? invs + (step + 1) * layout.padded : nullptr};
     T* gf_after = work.gf.data() + parity * 3 * n;
     T* gf = work.gf.data() + (1 - parity) * 3 * n;
-    ReverseIteration(layout, p, k, at, false, gf_after, gf, out, work.reverse, work.partials[t], team, t);
+    ReverseIteration(layout, p, k, at, false, gf_after, gf, out, work.wanted, work.reverse, work.partials[t], team, t);
     parity = 1 - parity;
   }
 }
@@ -766,7 +906,8 @@ void FinishReverse(const Layout& layout, const Inputs<T>& p, const StepConstants
                    const Cotangents<T>& out, Workspace<T>& work, int parity, Team& team, int t) {
   const int64_t n = layout.n;
   const ReverseStep<T> at{nullptr, nullptr, first, first + 3 * n};
-  ReverseIteration(layout, p, k, at, true, work.gf.data() + parity * 3 * n, static_cast<T*>(nullptr), out, work.reverse,
+  ReverseIteration(layout, p, k, at, true, work.gf.data() + parity * 3 * n, static_cast<T*>(nullptr), out, work.wanted,
+                   work.reverse,
                    work.partials[t], team, t);
 }
 
@@ -788,12 +929,13 @@ void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& conf
   const StepConstants<T> k(p, config);
   int parity = 0;
   for (int64_t segment = segments - 1; segment >= 0; --segment) {
-    T* invs = work.invs.empty() ? nullptr : work.invs.data();
-    const int64_t length = Replay(layout, p, config, stored, segment, work.forward, work.states.data(), invs, team, t);
-    ReverseSegment(layout, p, k, work.states.data(), invs, length, StoredAfter(config, stored, segment, n), v_final,
-                   out, work, parity, team, t);
+    T* invs = work.invs[0].empty() ? nullptr : work.invs[0].data();
+    const int64_t length =
+        Replay(layout, p, config, stored, segment, work.forward, work.states[0].data(), invs, team, t);
+    ReverseSegment(layout, p, k, work.states[0].data(), invs, length, StoredAfter(config, stored, segment, n),
+                   v_final, out, work, parity, team, t);
   }
-  FinishReverse(layout, p, k, work.states.data(), out, work, parity, team, t);
+  FinishReverse(layout, p, k, work.states[0].data(), out, work, parity, team, t);
 }
 
 // The same for a small lattice on two threads: one replays segment s - 1 while the
@@ -803,9 +945,9 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
                        const T* v_final, const Cotangents<T>& out, Workspace<T>& work) {
   const int64_t n = layout.n;
   const int64_t segments = (config.steps + config.stride - 1) / config.stride;
-  std::vector<T> second(work.states.size()), second_invs(work.invs.size());
-  T* buffers[2] = {work.states.data(), second.data()};
-  T* invs[2] = {work.invs.empty() ? nullptr : work.invs.data(), second_invs.empty() ? nullptr : second_invs.data()};
+  T* buffers[2] = {work.states[0].data(), work.states[1].data()};
+  T* invs[2] = {work.invs[0].empty() ? nullptr : work.invs[0].data(),
+                work.invs[1].empty() ? nullptr : work.invs[1].data()};
   int64_t lengths[2] = {0, 0};
   Team pair(2);
   pair.Launch([&](int t) {
@@ -830,31 +972,69 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
   });
 }
 
+// The parameter buffers of a call, member by member. ks and kd hold one value per spring
+// of every member, or one per member (a scalar: expanded here for the steps, and its
+// cotangent is one sum per member).
 template <ffi::DataType DT>
-Inputs<ffi::NativeType<DT>> Member(int64_t i, int64_t batch, ffi::Buffer<DT> rest, ffi::Buffer<DT> ks,
-                                   ffi::Buffer<DT> kd, ffi::Buffer<DT> mass, ffi::Buffer<DT> free,
-                                   ffi::Buffer<DT> cdm, ffi::Buffer<DT> gravity, ffi::Buffer<DT> kg,
-                                   ffi::Buffer<DT> kgd, ffi::Buffer<DT> height) {
-  auto at = [&](ffi::Buffer<DT>& buffer) { return buffer.typed_data() + i * (buffer.element_count() / batch); };
-  return {at(rest), at(ks), at(kd), at(mass), at(free), at(cdm), at(gravity), at(kg), at(kgd), at(height)};
-}
+class Parameters {
+ public:
+  using T = ffi::NativeType<DT>;
+  Parameters(int64_t batch, int64_t springs, ffi::Buffer<DT> rest, ffi::Buffer<DT> ks, ffi::Buffer<DT> kd,
+             ffi::Buffer<DT> mass, ffi::Buffer<DT> free, ffi::Buffer<DT> cdm, ffi::Buffer<DT> gravity,
+             ffi::Buffer<DT> kg, ffi::Buffer<DT> kgd, ffi::Buffer<DT> height)
+      : batch_(batch), springs_(springs), rest_(rest), mass_(mass), free_(free), cdm_(cdm), gravity_(gravity),
+        kg_(kg), kgd_(kgd), height_(height) {
+    valid_ = static_cast<int64_t>(rest.element_count()) == batch * springs;
+    for (auto [buffer, full, scalar] : {std::tuple{&ks, &ks_, &ks_scalar_}, std::tuple{&kd, &kd_, &kd_scalar_}}) {
+      const int64_t count = static_cast<int64_t>(buffer->element_count());
+      *scalar = count == batch;
+      valid_ = valid_ && (*scalar || count == batch * springs);
+      if (*scalar && valid_) {
+        full->resize(batch * springs);
+        for (int64_t i = 0; i < batch; ++i) {
+          std::fill(full->begin() + i * springs, full->begin() + (i + 1) * springs, buffer->typed_data()[i]);
+        }
+      } else {
+        full->assign(buffer->typed_data(), buffer->typed_data() + (valid_ ? count : 0));
+      }
+    }
+  }
+  bool valid() const { return valid_; }  // one rest length per spring, ks and kd as above
+  bool ks_scalar() const { return ks_scalar_; }
+  bool kd_scalar() const { return kd_scalar_; }
+  Inputs<T> operator()(int64_t i) const {
+    auto at = [&](const ffi::Buffer<DT>& buffer) {
+      return buffer.typed_data() + i * (buffer.element_count() / batch_);
+    };
+    return {at(rest_), ks_.data() + i * springs_, kd_.data() + i * springs_, at(mass_), at(free_), at(cdm_),
+            at(gravity_), at(kg_), at(kgd_), at(height_)};
+  }
+
+ private:
+  int64_t batch_, springs_;
+  ffi::Buffer<DT> rest_, mass_, free_, cdm_, gravity_, kg_, kgd_, height_;
+  std::vector<T> ks_, kd_;
+  bool ks_scalar_ = false, kd_scalar_ = false, valid_ = false;
+};
 
 // Runs work(member, workspace, team, thread) for every member: members split over the
 // threads when batched (each alone), else one member by the whole team.
 template <typename T, typename Work>
-void ForMembers(int64_t batch, const Layout& layout, int64_t segment, Work work) {
+void ForMembers(int64_t batch, const Layout& layout, int64_t segment, bool pipelined, Work work) {
   const int threads = Threads(batch, layout);
   Team pool(threads);
   if (batch > 1) {
     pool.Launch([&](int t) {
       Team solo(1);
-      Workspace<T> space(layout, 1, segment);
-      for (int64_t i = t; i < batch; i += threads) work(i, space, solo, 0);
+      auto space = WorkspaceCache<T>::Take(layout, 1, segment, false);
+      for (int64_t i = t; i < batch; i += threads) work(i, *space, solo, 0);
+      WorkspaceCache<T>::Give(std::move(space));
     });
     return;
   }
-  Workspace<T> space(layout, threads, segment);
-  pool.Launch([&](int t) { work(0, space, pool, t); });
+  auto space = WorkspaceCache<T>::Take(layout, threads, segment, pipelined);
+  pool.Launch([&](int t) { work(0, *space, pool, t); });
+  WorkspaceCache<T>::Give(std::move(space));
 }
 
 // --- Batches: members side by side ---------------------------------------------------
@@ -1108,17 +1288,14 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
   if (made.has_error()) return made.error();
   const Layout& layout = *made.value();
   const int64_t n = layout.n, batch = x.element_count() / (3 * n);
-  if (static_cast<int64_t>(rest.element_count()) != batch * layout.springs || stride < 1) {
-    return ffi::Error::InvalidArgument("lattice: spring count or stride");
-  }
+  const Parameters<DT> parameters(batch, layout.springs, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+  if (!parameters.valid() || stride < 1) return ffi::Error::InvalidArgument("lattice: spring count or stride");
   const bool store = stored->element_count() > 0;
   const int64_t per_member = (steps + stride - 1) / stride * 6 * n;
   const Config config{steps, flags, dt, stride};
   std::copy(x.typed_data(), x.typed_data() + x.element_count(), x_out->typed_data());
   std::copy(v.typed_data(), v.typed_data() + v.element_count(), v_out->typed_data());
-  const std::function<Inputs<T>(int64_t)> member = [&](int64_t i) {
-    return Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
-  };
+  const std::function<Inputs<T>(int64_t)> member = [&](int64_t i) { return parameters(i); };
   if (batch > 1 && !store && layout.ascending) {
     const Sharing sharing = FindSharing<T>(layout, batch, member);
     if (GroupBytes(layout, sharing) <= kGroupBytes) {
@@ -1126,8 +1303,8 @@ ffi::Error Advance(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<DT> rest, f
       return ffi::Error::Success();
     }
   }
-  ForMembers<T>(batch, layout, 0, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
-    const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+  ForMembers<T>(batch, layout, 0, false, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
+    const Inputs<T> p = parameters(i);
     if (t == 0) work.Pad(layout, p, false);
     team.Sync();
     Simulate(layout, work.Padded(p), config, x_out->typed_data() + i * 3 * n, v_out->typed_data() + i * 3 * n,
@@ -1142,7 +1319,7 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
                            ffi::Buffer<DT> gravity, ffi::Buffer<DT> kg, ffi::Buffer<DT> kgd, ffi::Buffer<DT> height,
                            ffi::Buffer<DT> ct_x, ffi::Buffer<DT> ct_v, ffi::Span<const int64_t> shape,
                            ffi::Span<const int64_t> offsets, int64_t steps, double dt, int64_t flags, int64_t stride,
-                           ffi::ResultBuffer<DT> out_x, ffi::ResultBuffer<DT> out_v, ffi::ResultBuffer<DT> out_rest,
+                           int64_t needs, ffi::ResultBuffer<DT> out_x, ffi::ResultBuffer<DT> out_v, ffi::ResultBuffer<DT> out_rest,
                            ffi::ResultBuffer<DT> out_ks, ffi::ResultBuffer<DT> out_kd,
                            ffi::ResultBuffer<DT> out_mass, ffi::ResultBuffer<DT> out_cdm,
                            ffi::ResultBuffer<DT> out_gravity, ffi::ResultBuffer<DT> out_kg,
@@ -1152,7 +1329,8 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
   if (made.has_error()) return made.error();
   const Layout& layout = *made.value();
   const int64_t n = layout.n, batch = ct_x.element_count() / (3 * n);
-  if (stride < 1) return ffi::Error::InvalidArgument("lattice: stride");
+  const Parameters<DT> parameters(batch, layout.springs, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+  if (!parameters.valid() || stride < 1) return ffi::Error::InvalidArgument("lattice: spring count or stride");
   const Config config{steps, flags, dt, stride};
   const int64_t per_member = (steps + stride - 1) / stride * 6 * n;
   std::copy(ct_x.typed_data(), ct_x.typed_data() + ct_x.element_count(), out_x->typed_data());
@@ -1164,15 +1342,19 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
   if (steps == 0) return ffi::Error::Success();
   // one small lattice: replay and reverse pass on two threads at once
   const bool pipelined = batch == 1 && Threads(batch, layout) == 1 && HardwareThreads() > 1 && steps > stride;
-  ForMembers<T>(batch, layout, std::min(stride, steps), [&](int64_t i, Workspace<T>& work, Team& team, int t) {
+  ForMembers<T>(batch, layout, std::min(stride, steps), pipelined, [&](int64_t i, Workspace<T>& work, Team& team, int t) {
     auto at = [&](ffi::ResultBuffer<DT>& buffer) {
       return buffer->typed_data() + i * (buffer->element_count() / batch);
     };
     const Cotangents<T> out{at(out_x),       at(out_v),  at(out_rest), at(out_ks),  at(out_kd),    at(out_mass),
                             at(out_cdm),     at(out_gravity), at(out_kg), at(out_kgd), at(out_height)};
-    const auto p = Member<DT>(i, batch, rest, ks, kd, mass, free, cdm, gravity, kg, kgd, height);
+    const Inputs<T> p = parameters(i);
     work.partials[t] = Partials<T>();
-    if (t == 0) work.Pad(layout, p, true);
+    if (t == 0) {
+      work.wanted.mass = needs & kNeedMass;
+      work.wanted.lean = parameters.ks_scalar() && parameters.kd_scalar() && !(needs & kNeedRest);
+      work.Pad(layout, p, true);
+    }
     team.Sync();
     const Inputs<T> padded = work.Padded(p);
     const Cotangents<T> inner = work.Padded(out, layout.padded);
@@ -1183,13 +1365,7 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
       BackwardMember(layout, padded, config, states, v_final.typed_data() + i * 3 * n, inner, work, team, t);
     }
     team.Sync();
-    if (t == 0) {
-      work.Unpad(layout, out);
-      for (const Partials<T>& sums : work.partials) {
-        for (int k = 0; k < 3; ++k) out.gravity[k] += sums.Total(k);
-        out.height[0] += sums.Total(3);
-      }
-    }
+    if (t == 0) work.Unpad(layout, out, parameters.ks_scalar(), parameters.kd_scalar());
   });
   return ffi::Error::Success();
 }
@@ -1232,7 +1408,8 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
                                     .Arg<ffi::Buffer<DT>>() JAXSPRING_PARAMETER_ARGS(DT)    \
                                         .Arg<ffi::Buffer<DT>>()                             \
                                     .Arg<ffi::Buffer<DT>>() JAXSPRING_LATTICE_ATTRS         \
-                                        .Ret<ffi::Buffer<DT>>()                             \
+                                        .Attr<int64_t>("needs")                             \
+                                    .Ret<ffi::Buffer<DT>>()                                 \
                                     .Ret<ffi::Buffer<DT>>()                                 \
                                     .Ret<ffi::Buffer<DT>>()                                 \
                                     .Ret<ffi::Buffer<DT>>()                                 \
