@@ -460,6 +460,7 @@ struct Wanted {
   bool mass = true, lean = false;
   T ks = T(0), kd = T(0);
   const T* valid = nullptr;
+  const T* dt_m = nullptr;  // dt / m of every particle (the reverse pass then divides by none)
 };
 
 // One thread's sums for the parameters shared by all particles (gravity's three
@@ -486,7 +487,7 @@ struct Partials {
 template <typename T, bool kDragOn, bool kGravityOn, bool kGroundOn, bool kMass>
 void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotangents<T>& out, const T* x,
                              const T* v, const T* v_next, T* gf, const T* springs, int64_t n, int64_t i0, int64_t len,
-                             T* sums) {
+                             T* sums, const T* dt_m) {
   T* cx0 = out.x;
   T* cx1 = out.x + n;
   T* cx2 = out.x + 2 * n;
@@ -513,7 +514,6 @@ void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotan
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
     const int64_t i = i0 + j;
-    const T m = mass[i];
     const bool on = free[i] != T(0);
     const T w0 = v[i], w1 = v[n + i], w2 = v[2 * n + i];
     const T x0 = cx0[i] - springs[j], x1 = cx1[i] - springs[kRun + j], x2 = cx2[i] - springs[2 * kRun + j];
@@ -523,14 +523,15 @@ void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotan
     T c0 = on ? y0 + dt * x0 : T(0);
     T c1 = on ? y1 + dt * x1 : T(0);
     T c2 = on ? y2 + dt * x2 : T(0);
-    const T f0 = c0 * dt / m, f1 = c1 * dt / m, f2 = c2 * dt / m;
+    const T f0 = c0 * dt_m[i], f1 = c1 * dt_m[i], f2 = c2 * dt_m[i];  // dt / m, prepared
     // dv'/dm = -(dt F) / m^2 = -(v' - v) / m for free particles
-    T cm = kMass ? -(c0 * (v_next[i] - w0) + c1 * (v_next[n + i] - w1) + c2 * (v_next[2 * n + i] - w2)) / m : T(0);
+    T cm = kMass ? -(c0 * (v_next[i] - w0) + c1 * (v_next[n + i] - w1) + c2 * (v_next[2 * n + i] - w2)) / mass[i]
+                 : T(0);
     T cx1_out = x1;
-    if (kGravityOn) {
-      cg0[j] += m * f0;
-      cg1[j] += m * f1;
-      cg2[j] += m * f2;
+    if (kGravityOn) {  // m f = dt c
+      cg0[j] += dt * c0;
+      cg1[j] += dt * c1;
+      cg2[j] += dt * c2;
       if (kMass) cm += g0 * f0 + g1 * f1 + g2 * f2;
     }
     if (kDragOn) {
@@ -566,7 +567,7 @@ void ReverseParticles(const Inputs<T>& p, const StepConstants<T>& k, const Cotan
 
 template <typename T>
 using ReverseParticlesFn = void (*)(const Inputs<T>&, const StepConstants<T>&, const Cotangents<T>&, const T*,
-                                    const T*, const T*, T*, const T*, int64_t, int64_t, int64_t, T*);
+                                    const T*, const T*, T*, const T*, int64_t, int64_t, int64_t, T*, const T*);
 
 template <typename T>
 ReverseParticlesFn<T> PickReverseParticles(const StepConstants<T>& k, bool mass) {
@@ -694,7 +695,8 @@ void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConsta
       std::fill(springs, springs + 6 * kRun, T(0));
     }
     if (!finish) {
-      reverse_particles(p, k, out, at.x, at.v, at.v_after, gf, springs, n, i0, len, partials.lanes.data());
+      reverse_particles(p, k, out, at.x, at.v, at.v_after, gf, springs, n, i0, len, partials.lanes.data(),
+                        wanted.dt_m);
       return;
     }
     for (int c = 0; c < 3; ++c) {
@@ -752,7 +754,7 @@ struct Workspace {
   // cotangents cleared (the rows need no clearing: a pass writes every spring's entry
   // before it reads it, and entries without a spring stay zero); for a lean reverse
   // pass the mask of real springs
-  void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents) {
+  void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents, double dt = 0) {
     for (auto* buffer : {&rest, &ks, &kd}) buffer->assign(layout.padded, T(0));
     for (const Run& r : layout.valid) {
       std::copy(p.rest + r.k, p.rest + r.k + r.len, rest.data() + r.a);
@@ -760,6 +762,11 @@ struct Workspace {
       std::copy(p.kd + r.k, p.kd + r.k + r.len, kd.data() + r.a);
     }
     if (cotangents) ct.assign(3 * layout.padded, T(0));
+    if (cotangents) {
+      dt_m.resize(layout.n);
+      for (int64_t i = 0; i < layout.n; ++i) dt_m[i] = static_cast<T>(dt) / p.mass[i];
+      wanted.dt_m = dt_m.data();
+    }
     if (wanted.lean) {
       valid.assign(layout.padded, T(0));
       for (const Run& r : layout.valid) std::fill(valid.begin() + r.a, valid.begin() + r.a + r.len, T(1));
@@ -806,7 +813,7 @@ struct Workspace {
  public:
   Rows<T> forward, reverse;  // spring rows of the forward steps (and replays), of the reverse pass
   std::vector<T> states[2], invs[2];  // replayed states (and 1 / lengths), twice when pipelined
-  std::vector<T> gf, rest, ks, kd, ct, valid;
+  std::vector<T> gf, rest, ks, kd, ct, valid, dt_m;
   Wanted<T> wanted;
   std::vector<Partials<T>> partials;
 };
@@ -1353,7 +1360,7 @@ ffi::Error AdvanceBackward(ffi::Buffer<DT> stored, ffi::Buffer<DT> v_final, ffi:
     if (t == 0) {
       work.wanted.mass = needs & kNeedMass;
       work.wanted.lean = parameters.ks_scalar() && parameters.kd_scalar() && !(needs & kNeedRest);
-      work.Pad(layout, p, true);
+      work.Pad(layout, p, true, dt);
     }
     team.Sync();
     const Inputs<T> padded = work.Padded(p);
