@@ -256,10 +256,11 @@ inline Geometry<T> SpringGeometry(const T* x, const T* v, int64_t stride, int64_
 
 // Force of springs k.. on their particle a (the one on b is minus it), into the three
 // rows at out (components `width` apart), entries a..; with kKeep their 1 / length to
-// inv[j] too (for the reverse pass).
+// inv[j] too (for the reverse pass), times valid[j]: zero for padding, whose reverse
+// pass then yields zeros whatever the parameters.
 template <typename T, bool kKeep>
 void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T* rest, const T* ks, const T* kd,
-               int64_t len, T* out, int64_t width, T* inv) {
+               int64_t len, T* out, int64_t width, T* inv, const T* valid) {
   T* o0 = out;
   T* o1 = out + width;
   T* o2 = out + 2 * width;
@@ -270,7 +271,7 @@ void SpringRun(const T* x, const T* v, int64_t n, int64_t a, int64_t b, const T*
     o0[j] = m * g.u0;
     o1[j] = m * g.u1;
     o2[j] = m * g.u2;
-    if (kKeep) inv[j] = g.inv;
+    if (kKeep) inv[j] = g.inv * valid[j];
   }
 }
 
@@ -401,13 +402,14 @@ ParticleBlockFn<T> PickParticleBlock(const StepConstants<T>& k) {
 // state); thread t of the team, blocks [lo, hi). `rows` holds 3 components.
 template <typename T>
 void Step(const Layout& layout, const Inputs<T>& p, const StepConstants<T>& k, const T* x, const T* v, T* xo, T* vo,
-          Rows<T>& rows, Team& team, int64_t lo, int64_t hi, T* inv = nullptr) {
+          Rows<T>& rows, Team& team, int64_t lo, int64_t hi, T* inv = nullptr, const T* valid = nullptr) {
   const int64_t n = layout.n;
   const auto spring_run = inv ? SpringRun<T, true> : SpringRun<T, false>;
   for (int64_t b = lo; b < hi; ++b) {
     for (const Run& run : layout.blocks[b]) {
       spring_run(x, v, n, run.a, run.a + layout.shift[run.family], p.rest + run.k, p.ks + run.k, p.kd + run.k,
-                 run.len, rows.At(run.family) + run.a, rows.width, inv ? inv + run.k : nullptr);
+                 run.len, rows.At(run.family) + run.a, rows.width, inv ? inv + run.k : nullptr,
+                 inv ? valid + run.k : nullptr);
     }
   }
   team.Sync();
@@ -628,7 +630,8 @@ void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, i
   for (int64_t j = 0; j < len; ++j) {
     const Geometry<T> g = SpringGeometry<T, kKnown>(x, v, n, a + j, b + j, rest[j], kKnown ? inv_in[j] : T(0));
     const T u0 = g.u0, u1 = g.u1, u2 = g.u2, w0 = g.w0, w1 = g.w1, w2 = g.w2, inv = g.inv;
-    const T e = g.e, closing = g.closing, on = valid[j];
+    // a kept 1 / length is zero for padding (so are u, e and closing), a computed one is masked
+    const T e = g.e, closing = g.closing, on = kKnown ? T(1) : valid[j];
     const T m = (ks * e + kd * closing) * on;  // zero for padding, as below
     const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j], c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
     const T uc = (u0 * c0 + u1 * c1 + u2 * c2) * on;
@@ -767,10 +770,12 @@ struct Workspace {
       for (int64_t i = 0; i < layout.n; ++i) dt_m[i] = static_cast<T>(dt) / p.mass[i];
       wanted.dt_m = dt_m.data();
     }
-    if (wanted.lean) {
+    if (cotangents) {
       valid.assign(layout.padded, T(0));
       for (const Run& r : layout.valid) std::fill(valid.begin() + r.a, valid.begin() + r.a + r.len, T(1));
       wanted.valid = valid.data();
+    }
+    if (wanted.lean) {
       wanted.ks = p.ks[0];
       wanted.kd = p.kd[0];
     }
@@ -865,7 +870,7 @@ class WorkspaceCache {
 // unless invs is null, 1 / length of every padded spring at each but the last to invs).
 template <typename T>
 int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored, int64_t segment,
-               Rows<T>& rows, T* states, T* invs, Team& team, int t) {
+               Rows<T>& rows, T* states, T* invs, const T* valid, Team& team, int t) {
   const int64_t n = layout.n;
   int64_t lo, hi;
   Share(layout, t, team.size(), &lo, &hi);
@@ -879,7 +884,7 @@ int64_t Replay(const Layout& layout, const Inputs<T>& p, const Config& config, c
     const T* x = states + step * 6 * n;
     T* next = states + (step + 1) * 6 * n;
     Step(layout, p, k, x, x + 3 * n, next, next + 3 * n, rows, team, lo, hi,
-         invs ? invs + step * layout.padded : static_cast<T*>(nullptr));
+         invs ? invs + step * layout.padded : static_cast<T*>(nullptr), valid);
   }
   return length;
 }
@@ -938,7 +943,7 @@ void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& conf
   for (int64_t segment = segments - 1; segment >= 0; --segment) {
     T* invs = work.invs[0].empty() ? nullptr : work.invs[0].data();
     const int64_t length =
-        Replay(layout, p, config, stored, segment, work.forward, work.states[0].data(), invs, team, t);
+        Replay(layout, p, config, stored, segment, work.forward, work.states[0].data(), invs, work.valid.data(), team, t);
     ReverseSegment(layout, p, k, work.states[0].data(), invs, length, StoredAfter(config, stored, segment, n),
                    v_final, out, work, parity, team, t);
   }
@@ -962,7 +967,7 @@ void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& c
     if (t == 1) {  // the replayer
       for (int64_t j = 0; j < segments; ++j) {
         lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.forward, buffers[j % 2],
-                                invs[j % 2], solo, 0);
+                                invs[j % 2], work.valid.data(), solo, 0);
         pair.Sync();
       }
       return;
