@@ -1096,7 +1096,7 @@ constexpr int64_t kGroupBytes = 4 << 20;
 inline int64_t GroupBytes(const Layout& layout, Sharing sharing) {
   const int64_t springs = sharing.springs ? 2 * layout.padded * 8 / 64 : 3 * layout.padded;
   const int64_t particles = sharing.particles ? 5 * layout.n * 8 / 64 : 5 * layout.n;
-  return 64 * (6 * layout.n + 3 * (kRun + layout.margin) + springs + particles);
+  return 64 * (6 * layout.n + 3 * (layout.n + layout.margin) + springs + particles);
 }
 
 template <typename T>
@@ -1105,13 +1105,15 @@ struct Group {  // the inputs and state of Lanes<T>() members, member innermost
   // with Sharing::springs: rest (padded) and valid (1 for a spring, 0 for padding) once,
   // ks, kd once per lane; with Sharing::particles: mass .. kgd once per particle
   std::vector<T> valid;
-  // forces of the particles whose springs are under way: particle q at (q & (ring - 1)),
-  // components `stride` lanes apart (a block and the margin its springs reach beyond it;
-  // the stride is not a multiple of 4 KiB, whose three components would share cache sets)
-  int64_t ring = 1, stride = 0;
+  // the spring forces of a step, particle q at q (up to the margin a block's springs
+  // reach past the lattice's end), components `stride` lanes apart (not a multiple of 4
+  // KiB, whose three components would share cache sets); a particle's entry is cleared
+  // once it has moved. All particles, not a ring of the blocks under way: a run's springs
+  // then address both their ends from one base, and the loop keeps no ring index
+  // (measured: batches of 64 seed cloths 5% faster, of jellies 15%).
+  int64_t stride = 0;
   void AllocateForce(const Layout& layout) {
-    while (ring < kRun + layout.margin) ring *= 2;
-    stride = (ring + 5) * Lanes<T>();
+    stride = (layout.n + layout.margin + 5) * Lanes<T>();
     force.assign(3 * stride, T(0));
   }
 };
@@ -1126,7 +1128,7 @@ void GroupParticles(Group<T>& g, int64_t n, T dt, int64_t lo, int64_t hi) {
   T* x = g.x.data();
   T* v = g.v.data();
   for (int64_t q = lo; q < hi; ++q) {
-    T* f = g.force.data() + (q & (g.ring - 1)) * L;
+    T* f = g.force.data() + q * L;
     JAXSPRING_INDEPENDENT
     for (int64_t l = 0; l < L; ++l) {
       const int64_t e = q * L + l, o = kShared ? q : e;
@@ -1145,37 +1147,41 @@ void GroupParticles(Group<T>& g, int64_t n, T dt, int64_t lo, int64_t hi) {
 template <typename T, bool kShared>
 void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
   constexpr int64_t L = Lanes<T>();
-  const int64_t nl = layout.n * L, rl = g.stride, mask = g.ring - 1;
-  const T* x = g.x.data();
-  const T* v = g.v.data();
+  const int64_t nl = layout.n * L, rl = g.stride;
   const T* rest = g.rest.data();
   const T* ks = g.ks.data();
   const T* kd = g.kd.data();
   const T* valid = g.valid.data();
+  alignas(64) T ks_lanes[L], kd_lanes[L];  // shared: one value a lane, held in registers
+  if (kShared) {
+    std::copy(ks, ks + L, ks_lanes);
+    std::copy(kd, kd + L, kd_lanes);
+  }
   for (const Run& run : layout.blocks[block]) {
-    const int64_t shift = layout.shift[run.family];
+    const int64_t sl = layout.shift[run.family] * L;
+    const T* x = g.x.data() + run.a * L;
+    const T* v = g.v.data() + run.a * L;
+    T* f = g.force.data() + run.a * L;
     for (int64_t j = 0; j < run.len; ++j) {
-      const int64_t a = (run.a + j) * L, b = (run.a + j + shift) * L, k = (run.k + j) * L;
-      T* fa = g.force.data() + ((run.a + j) & mask) * L;
-      T* fb = g.force.data() + ((run.a + j + shift) & mask) * L;
+      const int64_t o = j * L, k = (run.k + j) * L;
       JAXSPRING_INDEPENDENT
       for (int64_t l = 0; l < L; ++l) {
         Geometry<T> g;
         T m;
         if (kShared) {  // valid is 1 for a spring (m exactly ks e + kd closing), 0 for padding
-          g = SpringGeometry(x, v, nl, a + l, b + l, rest[run.k + j]);
-          m = valid[run.k + j] * (ks[l] * g.e + kd[l] * g.closing);
+          g = SpringGeometry(x, v, nl, o + l, o + sl + l, rest[run.k + j]);
+          m = valid[run.k + j] * (ks_lanes[l] * g.e + kd_lanes[l] * g.closing);
         } else {
-          g = SpringGeometry(x, v, nl, a + l, b + l, rest[k + l]);
+          g = SpringGeometry(x, v, nl, o + l, o + sl + l, rest[k + l]);
           m = ks[k + l] * g.e + kd[k + l] * g.closing;
         }
         const T f0 = m * g.u0, f1 = m * g.u1, f2 = m * g.u2;
-        fa[l] += f0;
-        fa[rl + l] += f1;
-        fa[2 * rl + l] += f2;
-        fb[l] -= f0;
-        fb[rl + l] -= f1;
-        fb[2 * rl + l] -= f2;
+        f[o + l] += f0;
+        f[rl + o + l] += f1;
+        f[2 * rl + o + l] += f2;
+        f[o + sl + l] -= f0;
+        f[rl + o + sl + l] -= f1;
+        f[2 * rl + o + sl + l] -= f2;
       }
     }
   }
