@@ -143,6 +143,9 @@ def spring_force(x, v, pairs, rest, ks, kd):
 # replays one such segment at a time on a second thread (keeping its states) while the
 # first runs the exact reverse pass over the segment before. Memory ~3 sqrt(steps)
 # states; time one forward pass plus the reverse pass (the replay runs alongside).
+# Scalar ks and kd go in as one value each, and the backward call is told which
+# inputs are differentiated (symbolic zeros): it skips the rest lengths' and masses'
+# cotangents nobody asked for and sums those of a scalar ks, kd itself.
 
 _DRAG, _GRAVITY, _GROUND = 1, 2, 4
 

@@ -20,7 +20,10 @@
 // exact reverse pass over it (memory ~2 sqrt(steps) states for stride ~sqrt(steps)).
 // The reverse pass is the same two passes backwards: the particle pass gathers the
 // springs' cotangent rows of the step after and yields the force's cotangent; the spring
-// pass turns it into cotangent rows (for x and v) and parameter cotangents.
+// pass turns it into cotangent rows (for x and v) and parameter cotangents. It computes
+// only the cotangents asked for (`needs`, from JAX's symbolic zeros): with ks and kd
+// given as one value each (a scalar parameter) and no rest-length cotangent, the spring
+// pass sums their cotangents per lane instead of per spring (`Wanted`).
 //
 // Threads: a batch (vmap) is split over threads by members. One large lattice is split
 // by particle ranges (two barriers per step). One small lattice runs forward on one
@@ -171,7 +174,6 @@ struct Rows {
   }
   T* At(size_t family) { return base + family * comps * width + margin; }  // component 0, particle 0
   const T* At(size_t family) const { return base + family * comps * width + margin; }
-  int64_t Bytes() const { return static_cast<int64_t>(data.size() * sizeof(T)); }
 };
 
 template <typename T>
@@ -730,8 +732,7 @@ inline int Threads(int64_t batch, const Layout& layout) {
 template <typename T>
 struct Workspace {
   // segment > 0: for backward calls; pipelined: two buffers of replayed states
-  Workspace(const Layout& layout, int threads, int64_t segment, bool pipelined)
-      : layout_(&layout), threads_(threads), segment_(segment), pipelined_(pipelined), partials(threads) {
+  Workspace(const Layout& layout, int threads, int64_t segment, bool pipelined) : partials(threads) {
     forward.Allocate(layout, 3);
     if (segment > 0) {
       const int64_t n = layout.n;
@@ -744,14 +745,6 @@ struct Workspace {
       }
       reverse.Allocate(layout, 6);
     }
-  }
-  bool Fits(const Layout& layout, int threads, int64_t segment, bool pipelined) const {
-    return layout_ == &layout && threads_ == threads && segment_ == segment && pipelined_ == pipelined;
-  }
-  int64_t Bytes() const {
-    return static_cast<int64_t>(sizeof(T)) * static_cast<int64_t>(states[0].size() + states[1].size() +
-                                                                 invs[0].size() + invs[1].size() + gf.size()) +
-           forward.Bytes() + reverse.Bytes();
   }
   // the member's spring parameters in padded order (zero for padding), and their
   // cotangents cleared (the rows need no clearing: a pass writes every spring's entry
@@ -809,60 +802,11 @@ struct Workspace {
       out.kd[0] += sums.Total(Partials<T>::kKd);
     }
   }
- private:
-  const Layout* layout_;
-  int threads_;
-  int64_t segment_;
-  bool pipelined_;
-
- public:
   Rows<T> forward, reverse;  // spring rows of the forward steps (and replays), of the reverse pass
   std::vector<T> states[2], invs[2];  // replayed states (and 1 / lengths), twice when pipelined
   std::vector<T> gf, rest, ks, kd, ct, valid, dt_m;
   Wanted<T> wanted;
   std::vector<Partials<T>> partials;
-};
-
-// Workspaces outlive their call, a few of them: a fresh one costs its page faults, more
-// than a millisecond per backward call of the seed cloth (its replayed states and
-// lengths are some MB). Calls from several threads each take their own.
-constexpr size_t kCachedWorkspaces = 4;
-constexpr int64_t kCachedBytes = 64 << 20;  // larger ones are not kept
-
-template <typename T>
-class WorkspaceCache {
- public:
-  static std::unique_ptr<Workspace<T>> Take(const Layout& layout, int threads, int64_t segment, bool pipelined) {
-    {
-      std::lock_guard<std::mutex> lock(Mutex());
-      auto& kept = Kept();
-      for (auto it = kept.rbegin(); it != kept.rend(); ++it) {
-        if ((*it)->Fits(layout, threads, segment, pipelined)) {
-          std::unique_ptr<Workspace<T>> found = std::move(*it);
-          kept.erase(std::next(it).base());
-          return found;
-        }
-      }
-    }
-    return std::make_unique<Workspace<T>>(layout, threads, segment, pipelined);
-  }
-  static void Give(std::unique_ptr<Workspace<T>> work) {
-    if (work->Bytes() > kCachedBytes) return;
-    std::lock_guard<std::mutex> lock(Mutex());
-    auto& kept = Kept();
-    kept.push_back(std::move(work));
-    if (kept.size() > kCachedWorkspaces) kept.erase(kept.begin());  // the least recently given
-  }
-
- private:
-  static std::mutex& Mutex() {
-    static std::mutex mutex;
-    return mutex;
-  }
-  static std::vector<std::unique_ptr<Workspace<T>>>& Kept() {
-    static std::vector<std::unique_ptr<Workspace<T>>> kept;
-    return kept;
-  }
 };
 
 // Re-runs segment `segment` (config.stride steps, fewer for the last) from its stored
@@ -1038,15 +982,13 @@ void ForMembers(int64_t batch, const Layout& layout, int64_t segment, bool pipel
   if (batch > 1) {
     pool.Launch([&](int t) {
       Team solo(1);
-      auto space = WorkspaceCache<T>::Take(layout, 1, segment, false);
-      for (int64_t i = t; i < batch; i += threads) work(i, *space, solo, 0);
-      WorkspaceCache<T>::Give(std::move(space));
+      Workspace<T> space(layout, 1, segment, false);
+      for (int64_t i = t; i < batch; i += threads) work(i, space, solo, 0);
     });
     return;
   }
-  auto space = WorkspaceCache<T>::Take(layout, threads, segment, pipelined);
-  pool.Launch([&](int t) { work(0, *space, pool, t); });
-  WorkspaceCache<T>::Give(std::move(space));
+  Workspace<T> space(layout, threads, segment, pipelined);
+  pool.Launch([&](int t) { work(0, space, pool, t); });
 }
 
 // --- Batches: members side by side ---------------------------------------------------
