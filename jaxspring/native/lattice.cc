@@ -37,6 +37,7 @@
 #endif
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
@@ -47,6 +48,7 @@
 #include <mutex>
 #include <thread>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 #include "xla/ffi/api/ffi.h"
@@ -581,18 +583,40 @@ template <typename T>
 using ReverseParticlesFn = void (*)(const Inputs<T>&, const StepConstants<T>&, const Cotangents<T>&, const T*,
                                     const T*, const T*, T*, const T*, int64_t, int64_t, int64_t, T*, const T*);
 
+// The 16 instances Of::Fn<b0, b1, b2, b3> of a function template with four flags, as a
+// table indexed b0 + 2 b1 + 4 b2 + 8 b3.
+template <typename Of, size_t... I>
+constexpr auto FlagTable(std::index_sequence<I...>) {
+  return std::array{Of::template Fn<(I & 1) != 0, (I & 2) != 0, (I & 4) != 0, (I & 8) != 0>...};
+}
+template <typename Of>
+auto Pick(bool b0, bool b1, bool b2, bool b3) {
+  static constexpr auto table = FlagTable<Of>(std::make_index_sequence<16>{});
+  return table[(b0 ? 1 : 0) + (b1 ? 2 : 0) + (b2 ? 4 : 0) + (b3 ? 8 : 0)];
+}
+
+template <typename T>
+struct ReverseParticlesOf {
+  template <bool kDragOn, bool kGravityOn, bool kGroundOn, bool kMass>
+  static constexpr ReverseParticlesFn<T> Fn = ReverseParticles<T, kDragOn, kGravityOn, kGroundOn, kMass>;
+};
+
 template <typename T>
 ReverseParticlesFn<T> PickReverseParticles(const StepConstants<T>& k, bool mass) {
-  static const ReverseParticlesFn<T> table[16] = {
-      ReverseParticles<T, false, false, false, false>, ReverseParticles<T, true, false, false, false>,
-      ReverseParticles<T, false, true, false, false>,  ReverseParticles<T, true, true, false, false>,
-      ReverseParticles<T, false, false, true, false>,  ReverseParticles<T, true, false, true, false>,
-      ReverseParticles<T, false, true, true, false>,   ReverseParticles<T, true, true, true, false>,
-      ReverseParticles<T, false, false, false, true>,  ReverseParticles<T, true, false, false, true>,
-      ReverseParticles<T, false, true, false, true>,   ReverseParticles<T, true, true, false, true>,
-      ReverseParticles<T, false, false, true, true>,   ReverseParticles<T, true, false, true, true>,
-      ReverseParticles<T, false, true, true, true>,    ReverseParticles<T, true, true, true, true>};
-  return table[(k.drag ? 1 : 0) + (k.gravity ? 2 : 0) + (k.ground ? 4 : 0) + (mass ? 8 : 0)];
+  return Pick<ReverseParticlesOf<T>>(k.drag, k.gravity, k.ground, mass);
+}
+
+// Spring j's entries of the reverse rows (`width` apart): the cotangent of d, p c + q w +
+// cl u, then of w, cc u (c: the force's cotangent).
+template <typename T>
+inline void ReverseRows(T* out, int64_t width, int64_t j, const Geometry<T>& g, T p, T q, T cl, T cc, T c0, T c1,
+                        T c2) {
+  out[j] = p * c0 + q * g.w0 + cl * g.u0;
+  out[width + j] = p * c1 + q * g.w1 + cl * g.u1;
+  out[2 * width + j] = p * c2 + q * g.w2 + cl * g.u2;
+  out[3 * width + j] = g.u0 * cc;
+  out[4 * width + j] = g.u1 * cc;
+  out[5 * width + j] = g.u2 * cc;
 }
 
 // Reverse of `SpringRun`: from gf, the cotangent of the force, writes the springs'
@@ -608,7 +632,7 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
     const Geometry<T> g = SpringGeometry<T, kKnown>(x, v, n, a + j, b + j, rest[j], kKnown ? inv_in[j] : T(0));
-    const T u0 = g.u0, u1 = g.u1, u2 = g.u2, w0 = g.w0, w1 = g.w1, w2 = g.w2, inv = g.inv;
+    const T u0 = g.u0, u1 = g.u1, u2 = g.u2, inv = g.inv;
     const T e = g.e, closing = g.closing;
     const T m = ks[j] * e + kd[j] * closing;
     const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j], c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
@@ -620,12 +644,7 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
     cks[j] += e * uc;
     ckd[j] += closing * uc;
     crest[j] -= ks[j] * uc;
-    out[j] = p * c0 + q * w0 + cl * u0;
-    out[width + j] = p * c1 + q * w1 + cl * u1;
-    out[2 * width + j] = p * c2 + q * w2 + cl * u2;
-    out[3 * width + j] = u0 * cc;
-    out[4 * width + j] = u1 * cc;
-    out[5 * width + j] = u2 * cc;
+    ReverseRows(out, width, j, g, p, q, cl, cc, c0, c1, c2);
   }
 }
 
@@ -639,7 +658,7 @@ void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, i
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
     const Geometry<T> g = SpringGeometry<T, kKnown>(x, v, n, a + j, b + j, rest[j], kKnown ? inv_in[j] : T(0));
-    const T u0 = g.u0, u1 = g.u1, u2 = g.u2, w0 = g.w0, w1 = g.w1, w2 = g.w2, inv = g.inv;
+    const T u0 = g.u0, u1 = g.u1, u2 = g.u2, inv = g.inv;
     // a kept 1 / length is zero for padding (so are u, e and closing), a computed one is masked
     const T e = g.e, closing = g.closing, on = kKnown ? T(1) : valid[j];
     const T m = (ks * e + kd * closing) * on;  // zero for padding, as below
@@ -650,12 +669,7 @@ void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, i
     const T p = inv * m, q = inv * cc;
     cks[j] += e * uc;
     ckd[j] += closing * uc;
-    out[j] = p * c0 + q * w0 + cl * u0;
-    out[width + j] = p * c1 + q * w1 + cl * u1;
-    out[2 * width + j] = p * c2 + q * w2 + cl * u2;
-    out[3 * width + j] = u0 * cc;
-    out[4 * width + j] = u1 * cc;
-    out[5 * width + j] = u2 * cc;
+    ReverseRows(out, width, j, g, p, q, cl, cc, c0, c1, c2);
   }
 }
 
@@ -1170,20 +1184,17 @@ void GroupSprings(const Layout& layout, Group<T>& g, int64_t block) {
 // complete the forces on its particles (every shift is positive), which then move;
 // springs still to come read only positions after the block.
 template <typename T>
+struct GroupParticlesOf {
+  template <bool kDragOn, bool kGravityOn, bool kGroundOn, bool kShared>
+  static constexpr void (*Fn)(Group<T>&, int64_t, T, int64_t, int64_t) =
+      GroupParticles<T, kDragOn, kGravityOn, kGroundOn, kShared>;
+};
+
+template <typename T>
 void SimulateGroup(const Layout& layout, const Config& config, Sharing sharing, Group<T>& g) {
   const T dt = static_cast<T>(config.dt);
-  using Particles = void (*)(Group<T>&, int64_t, T, int64_t, int64_t);
-  static const Particles table[16] = {
-      GroupParticles<T, false, false, false, false>, GroupParticles<T, true, false, false, false>,
-      GroupParticles<T, false, true, false, false>,  GroupParticles<T, true, true, false, false>,
-      GroupParticles<T, false, false, true, false>,  GroupParticles<T, true, false, true, false>,
-      GroupParticles<T, false, true, true, false>,   GroupParticles<T, true, true, true, false>,
-      GroupParticles<T, false, false, false, true>,  GroupParticles<T, true, false, false, true>,
-      GroupParticles<T, false, true, false, true>,   GroupParticles<T, true, true, false, true>,
-      GroupParticles<T, false, false, true, true>,   GroupParticles<T, true, false, true, true>,
-      GroupParticles<T, false, true, true, true>,    GroupParticles<T, true, true, true, true>};
-  const Particles particles = table[(config.flags & kDrag ? 1 : 0) + (config.flags & kGravity ? 2 : 0) +
-                                    (config.flags & kGround ? 4 : 0) + (sharing.particles ? 8 : 0)];
+  const auto particles = Pick<GroupParticlesOf<T>>(config.flags & kDrag, config.flags & kGravity,
+                                                  config.flags & kGround, sharing.particles);
   const auto springs = sharing.springs ? GroupSprings<T, true> : GroupSprings<T, false>;
   const int64_t blocks = static_cast<int64_t>(layout.blocks.size());
   for (int64_t step = 0; step < config.steps; ++step) {
