@@ -466,9 +466,10 @@ struct Cotangents {
 // What the reverse pass computes besides the state's cotangents: all parameter
 // cotangents, but not the masses' unless asked; and with `lean` (ks and kd one value
 // per member, no rest-length cotangent asked for) the springs' pass reads the scalars
-// and `valid` (1 for a spring, 0 for padding, padded order) instead of per-spring ks
-// and kd, and sums the cotangents of ks and kd per lane (`Partials`) instead of per
-// spring: two streams of memory instead of seven.
+// instead of per-spring ks and kd, and sums their cotangents per lane (`Partials`)
+// instead of per spring: no stream of memory for them instead of five. `valid` (1 for a
+// spring, 0 for padding, padded order) masks the kept 1 / lengths, or the springs when
+// those are not kept.
 template <typename T>
 struct Wanted {
   bool mass = true, lean = false;
