@@ -993,20 +993,23 @@ class Parameters {
       : batch_(batch), springs_(springs), rest_(rest), mass_(mass), free_(free), cdm_(cdm), gravity_(gravity),
         kg_(kg), kgd_(kgd), height_(height) {
     valid_ = static_cast<int64_t>(rest.element_count()) == batch * springs;
-    for (auto [buffer, full, scalar] : {std::tuple{&ks, &ks_, &ks_scalar_}, std::tuple{&kd, &kd_, &kd_scalar_}}) {
+    for (auto [buffer, full, data, scalar] : {std::tuple{&ks, &ks_, &ks_data_, &ks_scalar_},
+                                              std::tuple{&kd, &kd_, &kd_data_, &kd_scalar_}}) {
       const int64_t count = static_cast<int64_t>(buffer->element_count());
       *scalar = count == batch;
       valid_ = valid_ && (*scalar || count == batch * springs);
+      *data = buffer->typed_data();  // per spring: read in place
       if (*scalar && valid_) {
         full->resize(batch * springs);
         for (int64_t i = 0; i < batch; ++i) {
           std::fill(full->begin() + i * springs, full->begin() + (i + 1) * springs, buffer->typed_data()[i]);
         }
-      } else {
-        full->assign(buffer->typed_data(), buffer->typed_data() + (valid_ ? count : 0));
+        *data = full->data();
       }
     }
   }
+  Parameters(const Parameters&) = delete;  // points into its own expansions
+  Parameters& operator=(const Parameters&) = delete;
   bool valid() const { return valid_; }  // one rest length per spring, ks and kd as above
   bool ks_scalar() const { return ks_scalar_; }
   bool kd_scalar() const { return kd_scalar_; }
@@ -1014,14 +1017,15 @@ class Parameters {
     auto at = [&](const ffi::Buffer<DT>& buffer) {
       return buffer.typed_data() + i * (buffer.element_count() / batch_);
     };
-    return {at(rest_), ks_.data() + i * springs_, kd_.data() + i * springs_, at(mass_), at(free_), at(cdm_),
+    return {at(rest_), ks_data_ + i * springs_, kd_data_ + i * springs_, at(mass_), at(free_), at(cdm_),
             at(gravity_), at(kg_), at(kgd_), at(height_)};
   }
 
  private:
   int64_t batch_, springs_;
   ffi::Buffer<DT> rest_, mass_, free_, cdm_, gravity_, kg_, kgd_, height_;
-  std::vector<T> ks_, kd_;
+  std::vector<T> ks_, kd_;  // the expansions of scalars
+  const T *ks_data_ = nullptr, *kd_data_ = nullptr;
   bool ks_scalar_ = false, kd_scalar_ = false, valid_ = false;
 };
 
