@@ -239,7 +239,8 @@ def test_lattice_kernel_threads_on_a_large_lattice():
 
     assert_gradients_match(loss, native, model, (params, state), "100x100")
     by_params = jax.grad(lambda p, m: loss(m, p, state))  # the lean spring pass on two threads
-    for a, b in zip(jax.tree_util.tree_leaves(by_params(params, native)), jax.tree_util.tree_leaves(by_params(params, model))):
+    leaves = [jax.tree_util.tree_leaves(by_params(params, m)) for m in (native, model)]
+    for a, b in zip(*leaves):
         assert relative(a, b) < 1e-11
     single = js.State(x=state.x.astype(jnp.float32), v=state.v.astype(jnp.float32))
     a = js.rollout(native, params, single, 20, 20).x
