@@ -42,12 +42,14 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <cstring>
 #include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <thread>
 #include <tuple>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -674,6 +676,100 @@ void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, i
   }
 }
 
+// One 64-byte vector of T (a GCC / Clang vector extension), for loops that keep sums
+// in registers across their iterations (which the compilers vectorise only by
+// reassociating, as their flags forbid).
+template <typename T>
+struct Pack {
+  typedef T V __attribute__((vector_size(64)));
+  static constexpr int64_t kLanes = 64 / sizeof(T);
+};
+
+// Loads and stores of a T or a Pack<T>::V at any alignment.
+template <typename U, typename T>
+inline U Read(const T* at) {
+  if constexpr (std::is_same_v<U, T>) {
+    return *at;
+  } else {
+    U value;
+    std::memcpy(&value, at, sizeof(U));
+    return value;
+  }
+}
+template <typename T, typename U>
+inline void Write(T* at, const U& value) {
+  std::memcpy(at, &value, sizeof(U));
+}
+
+// `ReverseRunLean` with kept 1 / lengths for the springs j .. j + kLanes - 1 of a run,
+// as one vector (j's offset already applied to every pointer; `width` apart rows at
+// out): the cotangents of ks, kd added to sum_ks, sum_kd in the lanes where `counted`.
+template <typename T, typename V, bool kMasked = false>
+inline void LeanSprings(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest,
+                        const T* inv_in, T ks, T kd, T* out, int64_t width, V& sum_ks, V& sum_kd,
+                        const V& counted = V{}) {
+  const V d0 = Read<V>(x + b) - Read<V>(x + a), d1 = Read<V>(x + n + b) - Read<V>(x + n + a),
+          d2 = Read<V>(x + 2 * n + b) - Read<V>(x + 2 * n + a);
+  const V w0 = Read<V>(v + b) - Read<V>(v + a), w1 = Read<V>(v + n + b) - Read<V>(v + n + a),
+          w2 = Read<V>(v + 2 * n + b) - Read<V>(v + 2 * n + a);
+  const V inv = Read<V>(inv_in);  // zero for padding: so are u, e, closing and all below
+  const V u0 = d0 * inv, u1 = d1 * inv, u2 = d2 * inv;
+  const V e = (d0 * d0 + d1 * d1 + d2 * d2) * inv - Read<V>(rest);
+  const V closing = w0 * u0 + w1 * u1 + w2 * u2;
+  const V m = ks * e + kd * closing;
+  const V c0 = Read<V>(gf + a) - Read<V>(gf + b), c1 = Read<V>(gf + n + a) - Read<V>(gf + n + b),
+          c2 = Read<V>(gf + 2 * n + a) - Read<V>(gf + 2 * n + b);
+  const V uc = u0 * c0 + u1 * c1 + u2 * c2;
+  const V cc = kd * uc;
+  const V cl = ks * uc - inv * (m * uc + closing * cc);
+  const V p = inv * m, q = inv * cc;
+  if constexpr (kMasked) {
+    sum_ks += counted != 0 ? e * uc : V{};
+    sum_kd += counted != 0 ? closing * uc : V{};
+  } else {
+    sum_ks += e * uc;
+    sum_kd += closing * uc;
+  }
+  Write(out, p * c0 + q * w0 + cl * u0);
+  Write(out + width, p * c1 + q * w1 + cl * u1);
+  Write(out + 2 * width, p * c2 + q * w2 + cl * u2);
+  Write(out + 3 * width, u0 * cc);
+  Write(out + 4 * width, u1 * cc);
+  Write(out + 5 * width, u2 * cc);
+}
+
+// `ReverseRunLean<T, true>` in whole vectors, the ks and kd sums kept in registers. A
+// run that does not fill its last vector ends with the vector of its last springs,
+// which overlaps the one before: its rows are written twice (the same values), and the
+// springs counted already are masked out of the sums. Runs shorter than a vector take
+// the scalar loop.
+template <typename T>
+void ReverseRunLeanPacked(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, T ks,
+                          T kd, const T* valid, int64_t len, T* sums, T* out, int64_t width, const T* inv_in) {
+  using V = typename Pack<T>::V;
+  constexpr int64_t L = Pack<T>::kLanes;
+  if (len < L) {
+    ReverseRunLean<T, true>(x, v, gf, n, a, b, rest, ks, kd, valid, len, sums, out, width, inv_in);
+    return;
+  }
+  V sum_ks{}, sum_kd{};
+  int64_t j = 0;
+  for (; j + L <= len; j += L) {
+    LeanSprings<T, V>(x, v, gf, n, a + j, b + j, rest + j, inv_in + j, ks, kd, out + j, width, sum_ks, sum_kd);
+  }
+  if (j < len) {
+    const int64_t last = len - L;  // lanes below j - last were counted
+    V lane;
+    for (int64_t l = 0; l < L; ++l) lane[l] = l >= j - last ? T(1) : T(0);
+    LeanSprings<T, V, true>(x, v, gf, n, a + last, b + last, rest + last, inv_in + last, ks, kd, out + last, width,
+                            sum_ks, sum_kd, lane);
+  }
+  for (int64_t l = 0; l < L; ++l) {
+    sums[l] += sum_ks[l];
+    sums[kRun + l] += sum_kd[l];
+  }
+}
+
 // Particle state of the reverse pass at one step: the state (x, v) at its start, and
 // after it (x_after, v_after; x_after null when this is the last step of the rollout:
 // nothing after it to take the springs' part from).
@@ -700,7 +796,7 @@ void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConsta
   const bool springs_after = at.x_after != nullptr, fused = team.size() == 1 && layout.ascending;
   alignas(64) T springs[6 * kRun];
   const auto reverse_run = at.inv_after ? ReverseRun<T, true> : ReverseRun<T, false>;
-  const auto reverse_lean = at.inv_after ? ReverseRunLean<T, true> : ReverseRunLean<T, false>;
+  const auto reverse_lean = at.inv_after ? ReverseRunLeanPacked<T> : ReverseRunLean<T, false>;
   T* spring_sums = partials.lanes.data() + Partials<T>::kKs * kRun;
   auto spring_pass = [&](int64_t b) {
     for (const Run& run : layout.blocks[b]) {
