@@ -197,6 +197,21 @@ def test_lattice_kernel_batches_segments_and_checkpoints(scenes):
         assert relative(g(params.ks), h(params.ks)) < 1e-11
 
 
+def test_lattice_backward_replays_alone_when_its_second_thread_is_late(scenes, monkeypatch):
+    """On two threads, the backward call's first thread replays what the second has not
+    begun, and all that is left once the second is late (here forced by a test hook, from
+    its first replay): into buffers of its own, with the same gradients. One call of 80
+    steps: 9 segments."""
+    model, params, state = lattice_case(scenes["cloth"], seed=3)
+    native = model.replace(backend="native")
+
+    def loss(m, p, s):
+        return jnp.sum(js.rollout(m, p, s, 80, 80).x[-1] ** 2)
+
+    monkeypatch.setenv("JAXSPRING_IMPATIENT", "1")
+    assert_gradients_match(loss, native, model, (params, state), "impatient")
+
+
 def test_lattice_batches_of_members_side_by_side(scenes):
     """Batched forward rollouts of the cloth (several particle blocks) run members side by
     side; what the members share (rest lengths and uniform ks, kd; particle parameters) is

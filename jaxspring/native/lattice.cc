@@ -39,6 +39,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
@@ -199,7 +200,21 @@ struct Config {
   int64_t stride;  // the forward call stores the state every `stride` steps
 };
 
-// A spin barrier for the threads of one call (yielding when it waits long).
+// One turn of a thread's wait for another: spin (telling the core so, which lets a
+// hypervisor run another virtual CPU), yielding from the 2000th turn.
+inline void Wait(int turn) {
+  if (turn > 2000) {
+    std::this_thread::yield();
+    return;
+  }
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_ia32_pause();
+#elif defined(__aarch64__)
+  asm volatile("yield");
+#endif
+}
+
+// A barrier for the threads of one call.
 class Team {
  public:
   explicit Team(int size) : size_(size) {}
@@ -212,9 +227,7 @@ class Team {
       generation_.fetch_add(1, std::memory_order_release);
       return;
     }
-    for (int spins = 0; generation_.load(std::memory_order_acquire) == generation; ++spins) {
-      if (spins > 2000) std::this_thread::yield();
-    }
+    for (int spins = 0; generation_.load(std::memory_order_acquire) == generation; ++spins) Wait(spins);
   }
   template <typename Body>
   void Launch(Body body) {  // body(thread index)
@@ -889,12 +902,13 @@ struct Workspace {
         if (keep) invs[b].Allocate(segment * layout.padded);
       }
       reverse.Allocate(layout, 6);
+      if (pipelined) second.Allocate(layout, 3);
     }
   }
   // the member's spring parameters in padded order (zero for padding), and their
   // cotangents cleared (the rows need no clearing: a pass writes every spring's entry
-  // before it reads it, and entries without a spring stay zero); for a lean reverse
-  // pass the mask of real springs
+  // before it reads it, and entries without a spring stay zero); for a backward call dt
+  // / m of every particle and the mask of real springs
   void Pad(const Layout& layout, const Inputs<T>& p, bool cotangents, double dt = 0) {
     for (auto* buffer : {&rest, &ks, &kd}) buffer->assign(layout.padded, T(0));
     for (const Run& r : layout.valid) {
@@ -902,13 +916,11 @@ struct Workspace {
       std::copy(p.ks + r.k, p.ks + r.k + r.len, ks.data() + r.a);
       std::copy(p.kd + r.k, p.kd + r.k + r.len, kd.data() + r.a);
     }
-    if (cotangents) ct.assign(3 * layout.padded, T(0));
     if (cotangents) {
+      ct.assign(3 * layout.padded, T(0));
       dt_m.resize(layout.n);
       for (int64_t i = 0; i < layout.n; ++i) dt_m[i] = static_cast<T>(dt) / p.mass[i];
       wanted.dt_m = dt_m.data();
-    }
-    if (cotangents) {
       valid.assign(layout.padded, T(0));
       for (const Run& r : layout.valid) std::fill(valid.begin() + r.a, valid.begin() + r.a + r.len, T(1));
       wanted.valid = valid.data();
@@ -948,6 +960,7 @@ struct Workspace {
     }
   }
   Rows<T> forward, reverse;  // spring rows of the forward steps (and replays), of the reverse pass
+  Rows<T> second;            // pipelined: those of the replays by the thread of the reverse pass
   // replayed states (and 1 / lengths), twice when pipelined; left uninitialised (a replay
   // writes every entry before the reverse pass reads it), so that their pages are first
   // touched, and zeroed by the system, on the replaying thread
@@ -1042,37 +1055,92 @@ void BackwardMember(const Layout& layout, const Inputs<T>& p, const Config& conf
   FinishReverse(layout, p, k, work.states[0].data(), out, work, parity, team, t);
 }
 
-// The same for a small lattice on two threads: one replays segment s - 1 while the
-// other runs the reverse pass over segment s (double-buffered states).
+// The same for a small lattice on two threads: the second replays segment s - 1 while
+// the first runs the reverse pass over segment s (double-buffered states). The first
+// replays the last segment itself (no wait for the second to start), and any replay not
+// yet begun. When it has waited for one longer than it takes to replay one itself, the
+// second core is slow (busy, or descheduled by a hypervisor): it then replays every
+// segment left itself, into buffers of its own.
 template <typename T>
 void BackwardPipelined(const Layout& layout, const Inputs<T>& p, const Config& config, const T* stored,
                        const T* v_final, const Cotangents<T>& out, Workspace<T>& work) {
+  using Clock = std::chrono::steady_clock;
   const int64_t n = layout.n;
   const int64_t segments = (config.steps + config.stride - 1) / config.stride;
   T* buffers[2] = {work.states[0].data(), work.states[1].data()};
   T* invs[2] = {work.invs[0].empty() ? nullptr : work.invs[0].data(),
                 work.invs[1].empty() ? nullptr : work.invs[1].data()};
   int64_t lengths[2] = {0, 0};
+  // replays go in order j = 0, 1, .. (segment segments - 1 - j), into buffer j % 2
+  std::atomic<int64_t> taken{1};     // replays j < taken are claimed (j = 0 by the first thread)
+  std::atomic<int64_t> reversed{0};  // reverse passes j < reversed are done (their buffers free)
+  std::atomic<int64_t> ready[2] = {-1, -1};  // the replay each buffer holds, once complete
+  auto replay = [&](int64_t j, Rows<T>& rows, T* states, T* inv) {
+    Team solo(1);
+    return Replay(layout, p, config, stored, segments - 1 - j, rows, states, inv, work.valid.data(), solo, 0);
+  };
   Team pair(2);
   pair.Launch([&](int t) {
-    Team solo(1);
-    if (t == 1) {  // the replayer
-      for (int64_t j = 0; j < segments; ++j) {
-        lengths[j % 2] = Replay(layout, p, config, stored, segments - 1 - j, work.forward, buffers[j % 2],
-                                invs[j % 2], work.valid.data(), solo, 0);
-        pair.Sync();
+    if (t == 1) {  // replays ahead while buffers are free
+      for (int64_t j = taken.load(); j < segments; j = taken.load()) {
+        int turn = 0;
+        while (reversed.load(std::memory_order_acquire) < j - 1 && taken.load() == j) Wait(turn++);
+        if (!taken.compare_exchange_strong(j, j + 1)) continue;
+        lengths[j % 2] = replay(j, work.forward, buffers[j % 2], invs[j % 2]);
+        ready[j % 2].store(j, std::memory_order_release);
       }
       return;
     }
     const StepConstants<T> k(p, config);
+    Team solo(1);
     int parity = 0;
-    pair.Sync();
+    const auto start = Clock::now();
+    lengths[0] = replay(0, work.second, buffers[0], invs[0]);
+    const auto patience = (Clock::now() - start) * config.stride / std::max<int64_t>(lengths[0], 1);
+    // a test hook: let the other thread take replay 1, then give up on it at once
+    const bool impatient = std::getenv("JAXSPRING_IMPATIENT") != nullptr;
+    int64_t alone = segments;      // replays from here on are this thread's, into its own buffers
+    Uninitialised<T> own[2];        // those buffers: states, 1 / lengths
+    const T* states = buffers[0];  // the states of the latest reverse pass
     for (int64_t j = 0; j < segments; ++j) {
-      ReverseSegment(layout, p, k, buffers[j % 2], invs[j % 2], lengths[j % 2],
-                     StoredAfter(config, stored, segments - 1 - j, n), v_final, out, work, parity, solo, 0);
-      if (j + 1 < segments) pair.Sync();
+      for (int turn = 0; impatient && j == 1 && taken.load() < 2; ++turn) Wait(turn);
+      bool mine = j >= alone;
+      int64_t next = j;
+      if (j == 0 || mine) {
+        // replayed above, or below
+      } else if (taken.compare_exchange_strong(next, j + 1)) {  // not begun by the other thread
+        lengths[j % 2] = replay(j, work.second, buffers[j % 2], invs[j % 2]);
+      } else {
+        const auto since = Clock::now();
+        bool late = impatient;
+        for (int turn = 0; !late && ready[j % 2].load(std::memory_order_acquire) != j; ++turn) {
+          Wait(turn);
+          late = turn % 64 == 63 && Clock::now() - since > patience;
+        }
+        if (late) {
+          alone = std::min(alone, taken.exchange(segments));  // the other thread begins no more
+          mine = true;
+        }
+      }
+      states = buffers[j % 2];
+      T* inv = invs[j % 2];
+      int64_t length = 0;
+      if (mine) {  // the other thread may still write buffer j % 2
+        if (own[0].empty()) {
+          own[0].Allocate(work.states[0].count);
+          if (inv) own[1].Allocate(work.invs[0].count);
+        }
+        states = own[0].data();
+        inv = inv ? own[1].data() : nullptr;
+        length = replay(j, work.second, own[0].data(), inv);
+      } else {
+        length = lengths[j % 2];
+      }
+      ReverseSegment(layout, p, k, states, inv, length, StoredAfter(config, stored, segments - 1 - j, n), v_final,
+                     out, work, parity, solo, 0);
+      reversed.store(j + 1, std::memory_order_release);
     }
-    FinishReverse(layout, p, k, buffers[(segments - 1) % 2], out, work, parity, solo, 0);
+    FinishReverse(layout, p, k, states, out, work, parity, solo, 0);
   });
 }
 
