@@ -67,12 +67,19 @@ class SpeedRow:
 
 
 def _median_time(fn, repeats):
-    times = []
+    return _alternating_medians([fn], repeats)[0]
+
+
+def _alternating_medians(fns, repeats):
+    """Median wall time of each of fns, run in turn `repeats` times: a ratio of two is
+    then measured over the same stretch of a shared, drifting machine."""
+    times = [[] for _ in fns]
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
+        for fn, kept in zip(fns, times):
+            start = time.perf_counter()
+            fn()
+            kept.append(time.perf_counter() - start)
+    return [float(np.median(kept)) for kept in times]
 
 
 def _memory_mib(compiled) -> float:
@@ -123,18 +130,21 @@ def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: in
     row.gradient_mode = "plain" if mode is None else "checkpoint sqrt"
     row.memory_gradient_mib = _memory_mib(compiled)
     jax.block_until_ready(compiled(values))
-    grad_wall = _median_time(lambda: jax.block_until_ready(compiled(values)), repeats)
     fwd = _simulate.lower(m, p, s, 1, gradient_steps).compile()
     jax.block_until_ready(fwd(m, p, s))
-    fwd_wall = _median_time(lambda: jax.block_until_ready(fwd(m, p, s)), repeats)
+    grad_wall, fwd_wall = _alternating_medians(
+        [lambda: jax.block_until_ready(compiled(values)), lambda: jax.block_until_ready(fwd(m, p, s))], repeats
+    )
     row.gradient_ratio = grad_wall / fwd_wall
 
     if batch:
         ks = p.ks * jnp.linspace(0.8, 1.2, BATCH, dtype=s.x.dtype)
         batched = jax.jit(jax.vmap(lambda k: _simulate(m, p.replace(ks=k), s, 1, steps)[0].x)).lower(ks).compile()
         jax.block_until_ready(batched(ks))
-        batch_wall = _median_time(lambda: jax.block_until_ready(batched(ks)), repeats)
-        row.batch_ratio = (BATCH * steps / batch_wall) / row.steps_per_second
+        batch_wall, single_wall = _alternating_medians(
+            [lambda: jax.block_until_ready(batched(ks)), lambda: jax.block_until_ready(forward(m, p, s))], repeats
+        )
+        row.batch_ratio = BATCH * single_wall / batch_wall  # rollout-steps/s, batch over single
     return row
 
 
