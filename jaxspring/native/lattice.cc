@@ -50,7 +50,6 @@
 #include <mutex>
 #include <thread>
 #include <tuple>
-#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -698,20 +697,16 @@ struct Pack {
   static constexpr int64_t kLanes = 64 / sizeof(T);
 };
 
-// Loads and stores of a T or a Pack<T>::V at any alignment.
-template <typename U, typename T>
-inline U Read(const T* at) {
-  if constexpr (std::is_same_v<U, T>) {
-    return *at;
-  } else {
-    U value;
-    std::memcpy(&value, at, sizeof(U));
-    return value;
-  }
+// Loads and stores of a Pack<T>::V at any alignment.
+template <typename V, typename T>
+inline V Read(const T* at) {
+  V value;
+  std::memcpy(&value, at, sizeof(V));
+  return value;
 }
-template <typename T, typename U>
-inline void Write(T* at, const U& value) {
-  std::memcpy(at, &value, sizeof(U));
+template <typename T, typename V>
+inline void Write(T* at, const V& value) {
+  std::memcpy(at, &value, sizeof(V));
 }
 
 // `ReverseRunLean` with kept 1 / lengths for the springs j .. j + kLanes - 1 of a run,
@@ -1193,17 +1188,19 @@ class Parameters {
   bool ks_scalar_ = false, kd_scalar_ = false, valid_ = false;
 };
 
-// Runs work(member, workspace, team, thread) for every member: members split over the
-// threads when batched (each alone), else one member by the whole team.
+// Runs work(member, workspace, team, thread) for every member: when batched, each
+// thread takes the next member as it comes free (each alone), else one member by the
+// whole team.
 template <typename T, typename Work>
 void ForMembers(int64_t batch, const Layout& layout, int64_t segment, bool pipelined, Work work) {
   const int threads = Threads(batch, layout);
   Team pool(threads);
   if (batch > 1) {
-    pool.Launch([&](int t) {
+    std::atomic<int64_t> next{0};  // members go to whichever thread is free
+    pool.Launch([&](int) {
       Team solo(1);
       Workspace<T> space(layout, 1, segment, false);
-      for (int64_t i = t; i < batch; i += threads) work(i, space, solo, 0);
+      for (int64_t i = next++; i < batch; i = next++) work(i, space, solo, 0);
     });
     return;
   }
@@ -1215,7 +1212,8 @@ void ForMembers(int64_t batch, const Layout& layout, int64_t segment, bool pipel
 // A forward call on a batch runs groups of Lanes<T>() members together, the member
 // innermost (arrays (3, n, lanes)): every spring and particle update is then one aligned
 // vector operation across the group, with no scratch rows (a spring's two particles are
-// different, so their lanes never overlap). Threads take groups.
+// different, so their lanes never overlap). Threads take the next group as they come
+// free.
 
 template <typename T>
 constexpr int64_t Lanes() {
@@ -1383,7 +1381,8 @@ void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch, Sh
   const int64_t n = layout.n, groups = (batch + L - 1) / L;
   const int threads = static_cast<int>(std::min<int64_t>(HardwareThreads(), groups));
   Team pool(threads);
-  pool.Launch([&](int t) {
+  std::atomic<int64_t> next{0};  // groups go to whichever thread is free (a core may be slow)
+  pool.Launch([&](int) {
     Group<T> g;
     for (auto* buffer : {&g.x, &g.v}) buffer->assign(3 * n * L, T(0));
     g.AllocateForce(layout);
@@ -1409,7 +1408,7 @@ void AdvanceGroups(const Layout& layout, const Config& config, int64_t batch, Sh
     }
     g.gravity.assign(3 * L, T(0));
     g.height.assign(L, T(0));
-    for (int64_t group = t; group < groups; group += threads) {
+    for (int64_t group = next++; group < groups; group = next++) {
       for (int64_t l = 0; l < L; ++l) {  // gather the members, lane l
         const int64_t i = std::min(group * L + l, batch - 1);
         const Inputs<T> p = member(i);
