@@ -25,10 +25,11 @@
 // given as one value each (a scalar parameter) and no rest-length cotangent, the spring
 // pass sums their cotangents per lane instead of per spring (`Wanted`).
 //
-// Threads: a batch (vmap) is split over threads by members. One large lattice is split
-// by particle ranges (two barriers per step). One small lattice runs forward on one
-// thread; its backward call replays the next segment on a second thread while the
-// first runs the reverse pass.
+// Threads: a batch (vmap) is split over threads by members, each thread taking the next
+// as it comes free. One large lattice is split by particle ranges (two barriers per
+// step). One small lattice runs forward on one thread; its backward call replays the
+// next segment on a second thread while the first runs the reverse pass (and replays
+// what the second has not begun, or all that is left when the second is slow).
 #if defined(__linux__)
 #include <sys/mman.h>
 #if defined(MADV_HUGEPAGE)
