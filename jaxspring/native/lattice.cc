@@ -712,7 +712,8 @@ inline void Write(T* at, const V& value) {
 
 // `ReverseRunLean` with kept 1 / lengths for the springs j .. j + kLanes - 1 of a run,
 // as one vector (j's offset already applied to every pointer; `width` apart rows at
-// out): the cotangents of ks, kd added to sum_ks, sum_kd in the lanes where `counted`.
+// out): the cotangents of ks, kd added to sum_ks, sum_kd, with kMasked times `counted`
+// (1 or 0 a lane).
 template <typename T, typename V, bool kMasked = false>
 inline void LeanSprings(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest,
                         const T* inv_in, T ks, T kd, T* out, int64_t width, V& sum_ks, V& sum_kd,
@@ -733,8 +734,8 @@ inline void LeanSprings(const T* x, const T* v, const T* gf, int64_t n, int64_t 
   const V cl = ks * uc - inv * (m * uc + closing * cc);
   const V p = inv * m, q = inv * cc;
   if constexpr (kMasked) {
-    sum_ks += counted != 0 ? e * uc : V{};
-    sum_kd += counted != 0 ? closing * uc : V{};
+    sum_ks += counted * (e * uc);
+    sum_kd += counted * (closing * uc);
   } else {
     sum_ks += e * uc;
     sum_kd += closing * uc;
