@@ -664,19 +664,19 @@ void ReverseRun(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64
   }
 }
 
-// `ReverseRun` for scalar ks, kd (`Wanted::lean`): valid[j] masks padding; the
-// cotangents of ks and kd go to sums[j], sums[kRun + j]; none for the rest lengths.
-template <typename T, bool kKnown>
+// `ReverseRun` for scalar ks, kd (`Wanted::lean`), lengths computed: valid[j] masks
+// padding; the cotangents of ks and kd go to sums[j], sums[kRun + j]; none for the rest
+// lengths. (With kept 1 / lengths: `ReverseRunLeanPacked`.)
+template <typename T>
 void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, T ks, T kd,
-                    const T* valid, int64_t len, T* sums, T* out, int64_t width, const T* inv_in) {
+                    const T* valid, int64_t len, T* sums, T* out, int64_t width) {
   T* cks = sums;
   T* ckd = sums + kRun;
   JAXSPRING_INDEPENDENT
   for (int64_t j = 0; j < len; ++j) {
-    const Geometry<T> g = SpringGeometry<T, kKnown>(x, v, n, a + j, b + j, rest[j], kKnown ? inv_in[j] : T(0));
+    const Geometry<T> g = SpringGeometry<T>(x, v, n, a + j, b + j, rest[j]);
     const T u0 = g.u0, u1 = g.u1, u2 = g.u2, inv = g.inv;
-    // a kept 1 / length is zero for padding (so are u, e and closing), a computed one is masked
-    const T e = g.e, closing = g.closing, on = kKnown ? T(1) : valid[j];
+    const T e = g.e, closing = g.closing, on = valid[j];
     const T m = (ks * e + kd * closing) * on;  // zero for padding, as below
     const T c0 = gf[a + j] - gf[b + j], c1 = gf[n + a + j] - gf[n + b + j], c2 = gf[2 * n + a + j] - gf[2 * n + b + j];
     const T uc = (u0 * c0 + u1 * c1 + u2 * c2) * on;
@@ -691,14 +691,14 @@ void ReverseRunLean(const T* x, const T* v, const T* gf, int64_t n, int64_t a, i
 
 // One 64-byte vector of T (a GCC / Clang vector extension), for loops that keep sums
 // in registers across their iterations (which the compilers vectorise only by
-// reassociating, as their flags forbid).
+// reassociating, as their flags forbid). The helpers below take V = T too.
 template <typename T>
 struct Pack {
   typedef T V __attribute__((vector_size(64)));
   static constexpr int64_t kLanes = 64 / sizeof(T);
 };
 
-// Loads and stores of a Pack<T>::V at any alignment.
+// Loads and stores of a Pack<T>::V (or a T) at any alignment.
 template <typename V, typename T>
 inline V Read(const T* at) {
   V value;
@@ -711,8 +711,8 @@ inline void Write(T* at, const V& value) {
 }
 
 // `ReverseRunLean` with kept 1 / lengths for the springs j .. j + kLanes - 1 of a run,
-// as one vector (j's offset already applied to every pointer; `width` apart rows at
-// out): the cotangents of ks, kd added to sum_ks, sum_kd, with kMasked times `counted`
+// as one vector V (or for spring j alone, V = T; j's offset already applied to every
+// pointer; `width` apart rows at out): the cotangents of ks, kd added to sum_ks, sum_kd, with kMasked times `counted`
 // (1 or 0 a lane).
 template <typename T, typename V, bool kMasked = false>
 inline void LeanSprings(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest,
@@ -748,18 +748,21 @@ inline void LeanSprings(const T* x, const T* v, const T* gf, int64_t n, int64_t 
   Write(out + 5 * width, u2 * cc);
 }
 
-// `ReverseRunLean<T, true>` in whole vectors, the ks and kd sums kept in registers. A
-// run that does not fill its last vector ends with the vector of its last springs,
-// which overlaps the one before: its rows are written twice (the same values), and the
-// springs counted already are masked out of the sums. Runs shorter than a vector take
-// the scalar loop.
+// The lean spring pass with kept 1 / lengths (zero for padding), in whole vectors, the
+// ks and kd sums kept in registers. A run that does not fill its last vector ends with
+// the vector of its last springs, which overlaps the one before: its rows are written
+// twice (the same values), and the springs counted already are masked out of the sums.
+// Runs shorter than a vector go spring by spring.
 template <typename T>
 void ReverseRunLeanPacked(const T* x, const T* v, const T* gf, int64_t n, int64_t a, int64_t b, const T* rest, T ks,
-                          T kd, const T* valid, int64_t len, T* sums, T* out, int64_t width, const T* inv_in) {
+                          T kd, int64_t len, T* sums, T* out, int64_t width, const T* inv_in) {
   using V = typename Pack<T>::V;
   constexpr int64_t L = Pack<T>::kLanes;
   if (len < L) {
-    ReverseRunLean<T, true>(x, v, gf, n, a, b, rest, ks, kd, valid, len, sums, out, width, inv_in);
+    for (int64_t j = 0; j < len; ++j) {
+      LeanSprings<T, T>(x, v, gf, n, a + j, b + j, rest + j, inv_in + j, ks, kd, out + j, width, sums[j],
+                        sums[kRun + j]);
+    }
     return;
   }
   V sum_ks{}, sum_kd{};
@@ -806,19 +809,22 @@ void ReverseIteration(const Layout& layout, const Inputs<T>& p, const StepConsta
   const bool springs_after = at.x_after != nullptr, fused = team.size() == 1 && layout.ascending;
   alignas(64) T springs[6 * kRun];
   const auto reverse_run = at.inv_after ? ReverseRun<T, true> : ReverseRun<T, false>;
-  const auto reverse_lean = at.inv_after ? ReverseRunLeanPacked<T> : ReverseRunLean<T, false>;
   T* spring_sums = partials.lanes.data() + Partials<T>::kKs * kRun;
-  auto spring_pass = [&](int64_t b) {
-    for (const Run& run : layout.blocks[b]) {
-      if (wanted.lean) {
-        reverse_lean(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
-                     wanted.ks, wanted.kd, wanted.valid + run.k, run.len, spring_sums, rows.At(run.family) + run.a,
-                     rows.width, at.inv_after ? at.inv_after + run.k : nullptr);
+  auto spring_pass = [&](int64_t block) {
+    for (const Run& run : layout.blocks[block]) {
+      const int64_t a = run.a, b = a + layout.shift[run.family];  // its springs join a + j, b + j
+      if (wanted.lean && at.inv_after) {
+        ReverseRunLeanPacked(at.x_after, at.v_after, gf_after, n, a, b, p.rest + run.k, wanted.ks, wanted.kd,
+                             run.len, spring_sums, rows.At(run.family) + a, rows.width, at.inv_after + run.k);
         continue;
       }
-      reverse_run(at.x_after, at.v_after, gf_after, n, run.a, run.a + layout.shift[run.family], p.rest + run.k,
-                  p.ks + run.k, p.kd + run.k, run.len, out, run.k, rows.At(run.family) + run.a, rows.width,
-                  at.inv_after ? at.inv_after + run.k : nullptr);
+      if (wanted.lean) {
+        ReverseRunLean(at.x_after, at.v_after, gf_after, n, a, b, p.rest + run.k, wanted.ks, wanted.kd,
+                       wanted.valid + run.k, run.len, spring_sums, rows.At(run.family) + a, rows.width);
+        continue;
+      }
+      reverse_run(at.x_after, at.v_after, gf_after, n, a, b, p.rest + run.k, p.ks + run.k, p.kd + run.k, run.len,
+                  out, run.k, rows.At(run.family) + a, rows.width, at.inv_after ? at.inv_after + run.k : nullptr);
     }
   };
   auto particle_pass = [&](int64_t b) {
