@@ -62,7 +62,10 @@ def observations_from_trajectory(
         >>> scene, traj = js.load_trajectory("recorded.h5")
         >>> obs = js.observations_from_trajectory(scene, traj, scene.save_every)
     """
-    x = np.asarray(trajectory.x)
+    # the fit's precision, not the file's: `jaxspring run` writes float32 by default
+    dtype = np.dtype(scene.model.mass.dtype)
+    x = np.asarray(trajectory.x, dtype=dtype)
+    velocities = np.asarray(trajectory.v, dtype=dtype)
     count = scene.model.particle_count
     if x.ndim != 3 or x.shape[1] != count:
         raise InputError(
@@ -70,7 +73,7 @@ def observations_from_trajectory(
             f"has {x.shape[1] if x.ndim == 3 else '?'} particles but the scene has {count}",
             "give a target recorded from this scene",
         )
-    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(np.asarray(trajectory.v))):
+    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(velocities)):
         raise InputError("target", "contains NaN or infinite positions", "remove or repair those frames")
     if x.shape[0] < 2:
         raise InputError("target", "has fewer than 2 frames", "record a longer trajectory")
@@ -83,8 +86,8 @@ def observations_from_trajectory(
         x=x[:, observed],
         particles=observed,
         save_every=int(save_every),
-        initial_state=State(x=jnp.asarray(x[0]), v=jnp.asarray(np.asarray(trajectory.v)[0])),
-        states=trajectory if full else None,
+        initial_state=State(x=jnp.asarray(x[0]), v=jnp.asarray(velocities[0])),
+        states=Trajectory(x=jnp.asarray(x), v=jnp.asarray(velocities), t=jnp.asarray(trajectory.t, dtype)) if full else None,
         noise_std=float(noise_std),
         truth=truth,
     )

@@ -41,6 +41,7 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
         >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
     """
     frames = _frame_count(steps, save_every)
+    state = _in_model_precision(model, state)
     segment = _segment_length(checkpoint, frames * save_every)
     if segment is None:
         _, x, v = _simulate(model, params, state, frames, save_every)
@@ -60,8 +61,17 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
     Example:
         >>> end = js.final_state(scene.model, scene.params, scene.state, steps=1000)
     """
-    end, _, _ = _simulate(model, params, state, 1, int(steps))
+    end, _, _ = _simulate(model, params, _in_model_precision(model, state), 1, int(steps))
     return end
+
+
+def _in_model_precision(model: Model, state: State) -> State:
+    """The state promoted to the precision the step computes in (a float32 state read from a
+    file meets a float64 model when x64 is on); a state already there is returned as is."""
+    dtype = jnp.result_type(state.x, state.v, model.mass)
+    if state.x.dtype == dtype and state.v.dtype == dtype:
+        return state
+    return State(x=jnp.asarray(state.x, dtype), v=jnp.asarray(state.v, dtype))
 
 
 def _frame_count(steps, save_every) -> int:
