@@ -16,8 +16,8 @@ def native_extensions():
         return []
     return [
         Extension(
-            "jaxspring._native_springs",
-            sources=["jaxspring/native/springs.cc", "jaxspring/native/lattice.cc"],
+            "jaxspring.steppers._native_springs",
+            sources=["jaxspring/steppers/native/springs.cc", "jaxspring/steppers/native/lattice.cc"],
             include_dirs=[include],
             extra_compile_args=[
                 "-std=c++17",

@@ -9,7 +9,7 @@ Writes accuracy.csv, accuracy.md (table + recommended settings) and accuracy.png
 import sys
 from pathlib import Path
 
-from jaxspring._cli import main
+from jaxspring.cli import main
 
 if __name__ == "__main__":
     results = Path(__file__).resolve().parent / "results"

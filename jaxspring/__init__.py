@@ -8,18 +8,18 @@ Example:
 
 __version__ = "0.1.0"
 
-from ._errors import BlowUpError, FileFormatError, InputError, JaxspringError
-from ._files import load_trajectory, save_trajectory
-from ._forces import TERMS, safe_norm
-from ._integrators import INTEGRATORS, NewtonSettings, backward_euler, rk4, semi_implicit_euler, verlet
-from ._model import Model, check_params, make_model
-from ._params import Params
-from ._render import plot_fit, render
-from ._rollout import energy, final_state, rollout
-from ._scene import Scene, builtin_scenes, load_scene, scene_from_dict
-from ._stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup, stable_dt
-from ._state import State, Trajectory
-from ._topology import lattice_faces, lattice_positions, lattice_springs
+from .errors import BlowUpError, FileFormatError, InputError, JaxspringError
+from .io.scene import Scene, builtin_scenes, load_scene, scene_from_dict
+from .io.trajectory import load_trajectory, save_trajectory
+from .render import plot_fit, render
+from .sim.forces import TERMS, safe_norm
+from .sim.integrators import INTEGRATORS, NewtonSettings, backward_euler, rk4, semi_implicit_euler, verlet
+from .sim.model import Model, check_params, make_model
+from .sim.params import Params
+from .sim.rollout import energy, final_state, rollout
+from .sim.stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup, stable_dt
+from .sim.state import State, Trajectory
+from .sim.topology import lattice_faces, lattice_positions, lattice_springs
 
 __all__ = [
     "BlowUp",
@@ -61,10 +61,10 @@ __all__ = [
     "NewtonSettings",
 ]
 
-from ._experiment import Experiment, load_experiment, observations_from_file  # noqa: E402
-from ._fit import FitProgress, FitResult, FitSettings, Identifiability, fit, fit_batch, identifiability  # noqa: E402
-from ._fit_files import load_fit_progress, save_fit  # noqa: E402
-from ._observations import Observations, observations_from_trajectory, synthetic_observations  # noqa: E402
+from .fit.core import FitProgress, FitResult, FitSettings, Identifiability, fit, fit_batch, identifiability  # noqa: E402
+from .fit.observations import Observations, observations_from_trajectory, synthetic_observations  # noqa: E402
+from .io.experiment import Experiment, load_experiment, observations_from_file  # noqa: E402
+from .io.fit_file import load_fit_progress, save_fit  # noqa: E402
 
 __all__ += [
     "Experiment",
@@ -84,14 +84,14 @@ __all__ += [
     "synthetic_observations",
 ]
 
-from ._accuracy import AccuracyRow  # noqa: E402
-from ._accuracy import plot as plot_accuracy  # noqa: E402
-from ._accuracy import read_csv as read_accuracy  # noqa: E402
-from ._accuracy import recommend as recommend_settings  # noqa: E402
-from ._accuracy import sweep as accuracy_sweep  # noqa: E402
+from .bench.accuracy import AccuracyRow  # noqa: E402
+from .bench.accuracy import plot as plot_accuracy  # noqa: E402
+from .bench.accuracy import read_csv as read_accuracy  # noqa: E402
+from .bench.accuracy import recommend as recommend_settings  # noqa: E402
+from .bench.accuracy import sweep as accuracy_sweep  # noqa: E402
 
 __all__ += ["AccuracyRow", "accuracy_sweep", "plot_accuracy", "read_accuracy", "recommend_settings"]
 
-from ._sharding import batch_mesh, shard_batch  # noqa: E402
+from .sim.sharding import batch_mesh, shard_batch  # noqa: E402
 
 __all__ += ["batch_mesh", "shard_batch"]

@@ -4,7 +4,7 @@ import csv
 
 import numpy as np
 
-from jaxspring._cli import main
+from jaxspring.cli import main
 
 
 def test_check_prints_every_integrators_bound(capsys):

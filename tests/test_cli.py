@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring._cli import main
-from jaxspring._stability import energy_threshold
+from jaxspring.cli import main
+from jaxspring.sim.stability import energy_threshold
 
 
 def test_run_writes_file_and_summary(tmp_path, capsys):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring._cli import main
+from jaxspring.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "fitting").glob("*.toml"))
@@ -225,7 +225,7 @@ def test_long_horizon_strategies(strategy):
 def test_auto_strategy_choice(scenes):
     chain, jelly = scenes["chain"], scenes["jelly"]
     settings = js.FitSettings()
-    from jaxspring._fit import plan_stages
+    from jaxspring.fit.core import plan_stages
 
     assert [s.kind for s in plan_stages(js.synthetic_observations(chain, {}, 500, 10), settings, chain)] == ["direct"]
     long = js.synthetic_observations(chain, {}, 3000, 30)

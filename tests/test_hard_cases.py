@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring._cli import main
+from jaxspring.cli import main
 
 EXPLICIT = ["semi_implicit_euler", "verlet", "rk4"]
 

@@ -9,7 +9,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring import _native
-from jaxspring._speed import cloth_of_size
+from jaxspring.bench.speed import cloth_of_size
 
 if not _native.available():
     if os.environ.get("CI"):

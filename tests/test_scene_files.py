@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring._cli import main
+from jaxspring.cli import main
 
 GOOD = """
 name = "tiny"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring._files import atomic_path
+from jaxspring.io.trajectory import atomic_path
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,10 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._errors import InputError
-from ._model import Model
-from ._params import Params
-from ._state import State, Trajectory
+from ..errors import InputError
+from ..sim.model import Model
+from ..sim.params import Params
+from ..sim.state import State, Trajectory
 
 
 def rollout(model: Model, params: Params, state: State, steps: int, save_every: int = 1, checkpoint=None) -> Trajectory:

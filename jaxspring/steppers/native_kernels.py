@@ -1,7 +1,7 @@
 """Native CPU kernels (C++ through `jax.ffi`), forward and reverse mode.
 
-`jaxspring/native/springs.cc` and `lattice.cc` are compiled by the package build into
-`jaxspring/_native_springs*.so` (an optional extension: if it cannot be built the
+`jaxspring/steppers/native/springs.cc` and `lattice.cc` are compiled by the package build into
+`jaxspring/steppers/_native_springs*.so` (an optional extension: if it cannot be built the
 install still succeeds). Two kernels, each wrapped in a `jax.custom_vjp` whose
 backward is native too:
 
@@ -137,7 +137,7 @@ def spring_force(x, v, pairs, rest, ks, kd):
 
 
 # ----------------------------------------------------------------------------------
-# Whole steps of a lattice scene (jaxspring/native/lattice.cc): springs, drag, gravity
+# Whole steps of a lattice scene (jaxspring/steppers/native/lattice.cc): springs, drag, gravity
 # and ground, semi-implicit Euler, `steps` steps in one call. Its VJP is the second
 # kernel: the forward call keeps the state every ~sqrt(steps) steps; the backward call
 # replays one such segment at a time on a second thread (keeping its states) while the

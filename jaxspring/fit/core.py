@@ -22,13 +22,13 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from ._errors import InputError
-from ._observations import Observations
-from ._params import NON_NEGATIVE
-from ._rollout import rollout
-from ._scene import Scene
-from ._sharding import shard_batch
-from ._state import State
+from ..errors import InputError
+from ..fit.observations import Observations
+from ..io.scene import Scene
+from ..sim.params import NON_NEGATIVE
+from ..sim.rollout import rollout
+from ..sim.sharding import shard_batch
+from ..sim.state import State
 
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
 OPTIMIZERS = ("lbfgs", "adam")

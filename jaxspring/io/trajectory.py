@@ -13,11 +13,11 @@ import h5py
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import FileFormatError, InputError
-from ._model import check_params, make_model
-from ._params import Params
-from ._scene import Scene
-from ._state import State, Trajectory
+from ..errors import FileFormatError, InputError
+from ..io.scene import Scene
+from ..sim.model import check_params, make_model
+from ..sim.params import Params
+from ..sim.state import State, Trajectory
 
 TRAJECTORY_FORMAT = "jaxspring.trajectory"
 FORMAT_VERSION = 1
@@ -68,7 +68,7 @@ def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
     Example:
         >>> js.save_trajectory("cloth.h5", scene, traj)
     """
-    from . import __version__
+    from .. import __version__
 
     x = np.asarray(trajectory.x)
     model = scene.model

@@ -20,13 +20,13 @@ import time
 import jax
 import numpy as np
 
-from ._files import write_rows_csv
-from ._integrators import INTEGRATORS
-from ._render import pyplot, save_figure
-from ._rollout import _simulate, energy
-from ._scene import Scene, load_scene
-from ._stability import energy_threshold
-from ._state import Trajectory
+from ..io.scene import Scene, load_scene
+from ..io.trajectory import write_rows_csv
+from ..render import pyplot, save_figure
+from ..sim.integrators import INTEGRATORS
+from ..sim.rollout import _simulate, energy
+from ..sim.stability import energy_threshold
+from ..sim.state import Trajectory
 
 # scene -> (horizon [s], frame interval [s], dt values as divisors of the frame interval)
 SWEEPS = {

@@ -7,10 +7,10 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import InputError
-from ._rollout import rollout
-from ._scene import Scene
-from ._state import State, Trajectory
+from ..errors import InputError
+from ..io.scene import Scene
+from ..sim.rollout import rollout
+from ..sim.state import State, Trajectory
 
 
 @dataclasses.dataclass(frozen=True)

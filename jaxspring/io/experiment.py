@@ -6,11 +6,21 @@ import dataclasses
 import tomllib
 from pathlib import Path
 
-from ._errors import InputError
-from ._files import load_trajectory
-from ._fit import FitSettings
-from ._observations import Observations, observations_from_trajectory, synthetic_observations
-from ._scene import Scene, _count, _index_list, _non_negative_values, _number, _string, _string_list, _Table, load_scene
+from ..errors import InputError
+from ..fit.core import FitSettings
+from ..fit.observations import Observations, observations_from_trajectory, synthetic_observations
+from ..io.scene import (
+    Scene,
+    _count,
+    _index_list,
+    _non_negative_values,
+    _number,
+    _string,
+    _string_list,
+    _Table,
+    load_scene,
+)
+from ..io.trajectory import load_trajectory
 
 
 @dataclasses.dataclass(frozen=True)

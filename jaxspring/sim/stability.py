@@ -10,12 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._forces import TERMS
-from ._integrators import INTEGRATORS
-from ._model import Model
-from ._params import Params
-from ._rollout import _simulate, energy
-from ._state import State, Trajectory
+from ..sim.forces import TERMS
+from ..sim.integrators import INTEGRATORS
+from ..sim.model import Model
+from ..sim.params import Params
+from ..sim.rollout import _simulate, energy
+from ..sim.state import State, Trajectory
 
 ENERGY_GAIN_FACTOR = 0.5  # energy may not grow by more than this fraction of the energy scale
 

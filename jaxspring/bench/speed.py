@@ -16,11 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _native, _peers
-from ._files import write_rows_csv
-from ._render import pyplot, save_figure
-from ._rollout import _simulate
-from ._scene import Scene, load_scene, scene_from_dict
+from ..io.scene import Scene, load_scene, scene_from_dict
+from ..io.trajectory import write_rows_csv
+from ..render import pyplot, save_figure
+from ..sim.rollout import _simulate
+from ..steppers import native_kernels as _native
+from . import peers as _peers
 
 # cloth sizes of the scaling study: the seed cloth's material, spacing and dt
 CLOTH_SIZES = ((31, 41), (100, 100), (310, 410))
@@ -111,7 +112,7 @@ def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: in
     def make_loss(checkpoint):
         def loss(values):
             params = p.replace(**values)
-            from ._rollout import rollout
+            from ..sim.rollout import rollout
 
             x = rollout(m, params, s, gradient_steps, gradient_steps, checkpoint=checkpoint).x
             return jnp.mean(x[-1] ** 2)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.sparse.linalg import cg, gmres
 
-from ._state import State
+from ..sim.state import State
 
 
 def _acceleration(force, mass, free):

@@ -102,7 +102,7 @@ def warp_step(scene, dtype=np.float32):
     """NVIDIA Warp on the CPU, float32. Raises ImportError without `warp-lang`."""
     import warp as wp
 
-    from . import _warp_kernels as kernels
+    from . import warp_kernels as kernels
 
     wp.config.quiet = True
     wp.init()

@@ -10,10 +10,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._rollout import _frame_count, _simulate
-from ._scene import Scene
-from ._stability import BlowUp, StabilityEstimate, energy_threshold, estimate_stability, first_bad_frame, locate_blowup
-from ._state import State, Trajectory
+from ..io.scene import Scene
+from ..sim.rollout import _frame_count, _simulate
+from ..sim.stability import (
+    BlowUp,
+    StabilityEstimate,
+    energy_threshold,
+    estimate_stability,
+    first_bad_frame,
+    locate_blowup,
+)
+from ..sim.state import State, Trajectory
 
 CHUNK_STEPS = 2000
 

@@ -12,7 +12,7 @@
 // pass gathers, for every particle i, the sum over families of row(i) - row(i - shift)
 // (+ on a, - on b) and integrates. Both are unit-stride loops free of dependences.
 //
-// Per step, with F the total force (same formulas as jaxspring/_forces.py):
+// Per step, with F the total force (same formulas as jaxspring/sim/forces.py):
 // v' = free ? v + (dt F) / m : 0, x' = x + dt v'.
 //
 // Reverse mode: the forward call can return the state every `stride` steps; the
@@ -317,7 +317,7 @@ void FamilyDifferences(const Rows<T>& rows, const int64_t* shifts, size_t first,
     JAXSPRING_INDEPENDENT
     for (int64_t j = 0; j < len; ++j) {
       T sum = kInit ? T(0) : o[j];
-      for (int f = 0; f < NF; ++f) sum = sum + here[f][j] - there[f][j];  // jaxspring/_forces.py's order
+      for (int f = 0; f < NF; ++f) sum = sum + here[f][j] - there[f][j];  // jaxspring/sim/forces.py's order
       o[j] = sum;
     }
   }

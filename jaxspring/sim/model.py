@@ -8,12 +8,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import InputError
-from ._forces import TERM_PARAMETERS, TERMS
-from ._integrators import INTEGRATORS
-from ._integrators import step as _integrate
-from ._params import NON_NEGATIVE, PARAMETER_INFO, Params
-from ._state import State
+from ..errors import InputError
+from ..sim.forces import TERM_PARAMETERS, TERMS
+from ..sim.integrators import INTEGRATORS
+from ..sim.integrators import step as _integrate
+from ..sim.params import NON_NEGATIVE, PARAMETER_INFO, Params
+from ..sim.state import State
 
 
 @jax.tree_util.register_dataclass
@@ -34,7 +34,7 @@ class Model:
             in `lattice_springs` order (static); the spring force then runs as array
             shifts instead of scatters (same numbers, see `Springs`). None otherwise.
         backend: "jax" (default) or "native": the spring force by the C++ kernel
-            (`jaxspring/_native.py`; reverse mode and vmap, not forward mode), static.
+            (`jaxspring/steppers/native_kernels.py`; reverse mode and vmap, not forward mode), static.
 
     Build one with `make_model`; a loaded scene carries one as `scene.model`.
     """
@@ -152,7 +152,7 @@ class Model:
         """`steps` steps (static) on a state in the internal layout: one native call for
         native lattice models, a `lax.scan` of `step_internal` otherwise."""
         if self.native_lattice:
-            from ._native import lattice_advance
+            from ..steppers.native_kernels import lattice_advance
 
             return State(*lattice_advance(self, params, state.x, state.v, steps))
         step = lambda current, _: (self.step_internal(params, current), None)  # noqa: E731
@@ -272,7 +272,7 @@ def check_backend(name: str) -> str:
     if name not in BACKENDS:
         raise InputError("backend", f"unknown backend {name!r}", f"use one of {', '.join(BACKENDS)}")
     if name == "native":
-        from . import _native
+        from ..steppers import native_kernels as _native
 
         if not _native.available():
             _native.notice_unavailable()

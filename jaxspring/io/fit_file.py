@@ -9,9 +9,9 @@ import h5py
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import FileFormatError, InputError
-from ._files import atomic_path
-from ._fit import FitProgress, FitResult
+from ..errors import FileFormatError, InputError
+from ..fit.core import FitProgress, FitResult
+from ..io.trajectory import atomic_path
 
 FIT_FORMAT = "jaxspring.fit"
 FIT_FORMAT_VERSION = 1
@@ -25,7 +25,7 @@ def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, re
     Example:
         >>> save_fit("chain.fit.h5", config, result.names, result.initial, progress, result)
     """
-    from . import __version__
+    from .. import __version__
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(

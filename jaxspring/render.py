@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errors import InputError
-from ._files import atomic_path
-from ._scene import Scene
-from ._state import Trajectory
+from .errors import InputError
+from .io.scene import Scene
+from .io.trajectory import atomic_path
+from .sim.state import Trajectory
 
 # World (x, y, z) with y up -> matplotlib's (x, y, z) with z up.
 _TO_PLOT = (0, 2, 1)

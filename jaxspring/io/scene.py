@@ -11,12 +11,12 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ._errors import InputError
-from ._integrators import INTEGRATORS
-from ._model import Model, check_params, make_model
-from ._params import Params
-from ._state import State
-from ._topology import NEIGHBOUR_SETS, lattice_faces, lattice_positions, lattice_springs
+from ..errors import InputError
+from ..sim.integrators import INTEGRATORS
+from ..sim.model import Model, check_params, make_model
+from ..sim.params import Params
+from ..sim.state import State
+from ..sim.topology import NEIGHBOUR_SETS, lattice_faces, lattice_positions, lattice_springs
 
 AXES = {"x": 0, "y": 1, "z": 2}
 DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
@@ -67,7 +67,7 @@ class Scene:
 
     def with_backend(self, name: str) -> Scene:
         """A copy whose spring force runs on `name`: "jax" or "native" (the C++ kernel, if built)."""
-        from ._model import check_backend
+        from ..sim.model import check_backend
 
         return dataclasses.replace(self, model=self.model.replace(backend=check_backend(name)))
 
@@ -89,7 +89,7 @@ class Scene:
 
 def builtin_scene_dir() -> Path:
     """Folder of the built-in scenes (installed copy, else the source checkout's scenes/)."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent  # the jaxspring package
     for candidate in (here / "scenes", here.parent / "scenes"):
         if candidate.is_dir():
             return candidate

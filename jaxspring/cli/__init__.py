@@ -105,7 +105,7 @@ def _add_common(sub):
 def main(argv=None) -> int:
     """Entry point of the `jaxspring` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
-    from ._errors import JaxspringError
+    from ..errors import JaxspringError
 
     try:
         if getattr(args, "dtype", "float32") == "float64" or (args.command == "bench" and args.kind == "accuracy"):
@@ -130,7 +130,7 @@ def main(argv=None) -> int:
 
 
 def _parse_sets(items) -> dict:
-    from ._errors import InputError
+    from ..errors import InputError
 
     values = {}
     for item in items:
@@ -148,8 +148,8 @@ def _parse_sets(items) -> dict:
 
 
 def _prepare_scene(args):
-    from ._errors import InputError
-    from ._scene import load_scene
+    from ..errors import InputError
+    from ..io.scene import load_scene
 
     scene = load_scene(args.scene)
     if args.integrator:
@@ -175,7 +175,7 @@ def _prepare_scene(args):
 
 
 def _check_out_folder(path: Path):
-    from ._errors import InputError
+    from ..errors import InputError
 
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
@@ -183,10 +183,10 @@ def _check_out_folder(path: Path):
 
 
 def _simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
-    from ._errors import BlowUpError
-    from ._files import save_trajectory
-    from ._run import run_scene
-    from ._stability import estimate_stability
+    from ..errors import BlowUpError
+    from ..io.trajectory import save_trajectory
+    from ..sim.run import run_scene
+    from ..sim.stability import estimate_stability
 
     stability = estimate_stability(scene.model, scene.params, scene.state)
     if stability.margin < 1:
@@ -207,7 +207,7 @@ def _instability_advice(scene, stability) -> str:
 
 
 def _cmd_check(args):
-    from ._stability import estimate_stability
+    from ..sim.stability import estimate_stability
 
     scene, _, _ = _prepare_scene(args)
     stability = estimate_stability(scene.model, scene.params, scene.state)
@@ -235,7 +235,7 @@ def _cmd_bench(args):
 
 
 def _bench_folder(args) -> Path:
-    from ._errors import InputError
+    from ..errors import InputError
 
     if args.repeats < 1:
         raise InputError("--repeats", f"must be >= 1, got {args.repeats}", "time at least one run")
@@ -250,8 +250,9 @@ def _bench_folder(args) -> Path:
 def _bench_speed(args):
     import jax
 
-    from . import _peers, _speed
-    from ._errors import InputError
+    from ..bench import peers as _peers
+    from ..bench import speed as _speed
+    from ..errors import InputError
 
     peers = [p.strip() for p in args.peers.split(",") if p.strip()]
     for peer in peers:
@@ -286,8 +287,8 @@ def _bench_speed(args):
 
 
 def _bench_accuracy(args):
-    from . import _accuracy
-    from ._errors import InputError
+    from ..bench import accuracy as _accuracy
+    from ..errors import InputError
 
     table = _accuracy.QUICK_SWEEPS if args.quick else _accuracy.SWEEPS
     names = [n.strip() for n in args.scenes.split(",")] if args.scenes else list(table)
@@ -332,7 +333,7 @@ def _cmd_run(args):
 def _render_with_progress(scene, trajectory, out, frame, max_frames, quiet, label):
     from tqdm.auto import tqdm
 
-    from ._render import render
+    from ..render import render
 
     with tqdm(
         total=0, desc=label, unit="frame", file=sys.stderr, disable=quiet or not sys.stderr.isatty(), leave=False
@@ -347,7 +348,7 @@ def _render_with_progress(scene, trajectory, out, frame, max_frames, quiet, labe
 
 
 def _cmd_render(args):
-    from ._files import load_trajectory
+    from ..io.trajectory import load_trajectory
 
     scene, trajectory = load_trajectory(args.file)
     out = Path(args.out) if args.out else Path(args.file).with_suffix(".gif")
@@ -365,10 +366,10 @@ def _fit_problem(args):
     """(experiment, observations, names, init, settings, config) from the command line."""
     import dataclasses
 
-    from ._errors import InputError
-    from ._experiment import Experiment, load_experiment, observations_from_file
-    from ._files import load_trajectory
-    from ._fit import FitSettings
+    from ..errors import InputError
+    from ..fit.core import FitSettings
+    from ..io.experiment import Experiment, load_experiment, observations_from_file
+    from ..io.trajectory import load_trajectory
 
     if args.experiment:
         experiment = load_experiment(args.experiment)
@@ -419,10 +420,10 @@ def _cmd_fit(args):
 
     from tqdm.auto import tqdm
 
-    from ._errors import InputError
-    from ._fit import fit_batch
-    from ._fit_files import load_fit_progress, save_fit
-    from ._render import plot_fit
+    from ..errors import InputError
+    from ..fit.core import fit_batch
+    from ..io.fit_file import load_fit_progress, save_fit
+    from ..render import plot_fit
 
     if args.checkpoint_every < 1:
         raise InputError("--checkpoint-every", "must be >= 1", "give a positive number of iterations")
@@ -495,7 +496,7 @@ def _cmd_fit(args):
 
 
 def _cmd_demo(args):
-    from ._scene import builtin_scenes, load_scene
+    from ..io.scene import builtin_scenes, load_scene
 
     folder = Path(args.out_dir)
     folder.mkdir(parents=True, exist_ok=True)

@@ -76,7 +76,7 @@ class Springs:
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
             if model.backend == "native":
-                from ._native import spring_force
+                from ..steppers.native_kernels import spring_force
 
                 return spring_force(x, v, model.springs, model.rest_length, params.ks, params.kd)
             f, _ = self.spring_vectors(model, params, x, v)
