@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring import _native
+from jaxspring.steppers import native_kernels as _native
 from jaxspring.bench.speed import cloth_of_size
 
 if not _native.available():
@@ -208,8 +208,54 @@ def test_lattice_backward_replays_alone_when_its_second_thread_is_late(scenes, m
     def loss(m, p, s):
         return jnp.sum(js.rollout(m, p, s, 80, 80).x[-1] ** 2)
 
-    monkeypatch.setenv("JAXSPRING_IMPATIENT", "1")
-    assert_gradients_match(loss, native, model, (params, state), "impatient")
+    monkeypatch.setattr(_native, "_test_hooks", _native._TEST_IMPATIENT)
+    jax.clear_caches()  # the hook is an attribute of the traced call
+    try:
+        assert_gradients_match(loss, native, model, (params, state), "impatient")
+    finally:
+        monkeypatch.undo()
+        jax.clear_caches()
+
+
+OUT_OF_MEMORY = """
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+import jaxspring as js
+from jaxspring.steppers import native_kernels
+scene = js.load_scene("cloth")
+native = scene.model.replace(backend="native")
+def loss(ks):
+    return jnp.sum(js.rollout(native, scene.params.replace(ks=ks), scene.state, 30, 30).x ** 2)
+native_kernels._test_hooks = native_kernels._TEST_OUT_OF_MEMORY
+try:
+    jax.grad(loss)(scene.params.ks)
+except Exception as error:
+    print("raised:", type(error).__name__, str(error).splitlines()[0][:200])
+else:
+    print("no error")
+native_kernels._test_hooks = 0
+jax.clear_caches()
+print("after:", repr(float(jax.grad(loss)(scene.params.ks))))
+"""
+
+
+def test_lattice_backward_out_of_memory_raises_and_the_process_lives(scenes):
+    """The backward call's buffers cannot be allocated (forced by a test hook, in a process
+    of its own): the call raises a Python exception saying so instead of ending the
+    process, which then computes the same gradient as the pure-JAX path."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", OUT_OF_MEMORY], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    lines = run.stdout.splitlines()
+    assert lines[0].startswith("raised:") and "out of memory" in lines[0], run.stdout
+    scene = scenes["cloth"]
+    expected = jax.grad(
+        lambda ks: jnp.sum(js.rollout(scene.model, scene.params.replace(ks=ks), scene.state, 30, 30).x ** 2)
+    )(scene.params.ks)
+    after = float(lines[1].split(":", 1)[1])
+    assert abs(after - float(expected)) <= 1e-11 * abs(float(expected)), (after, float(expected))
 
 
 def test_lattice_batches_of_members_side_by_side(scenes):

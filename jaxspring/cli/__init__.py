@@ -14,12 +14,22 @@ from pathlib import Path
 
 import numpy as np
 
+from ..sim.integrators import INTEGRATORS
+from ..steppers import BACKENDS
+
 EXIT_USER_ERROR = 2
+INTEGRATOR_HELP = f"time integrator: {', '.join(INTEGRATORS)} (default: the scene's)"
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one line, exit code 2
         self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message}; see `{self.prog} --help`\n")
+
+
+BACKEND_HELP = (
+    "auto (default): the native C++ lattice kernel where it is built and runs the scene, else pure JAX; "
+    "jax: pure JAX (forward mode); native: the C++ kernels"
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,9 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter, e.g. ks=600"
     )
-    run.add_argument("--integrator", help="time integrator (default: the scene's)")
+    run.add_argument("--integrator", metavar="NAME", help=INTEGRATOR_HELP)
     run.add_argument("--dt", type=float, help="time step [s] (default: the scene's)")
-    run.add_argument("--backend", choices=["jax", "native"], help="spring force: pure JAX or the C++ kernel")
+    run.add_argument("--backend", choices=BACKENDS, help=BACKEND_HELP)
     _add_common(run)
 
     check = sub.add_parser(
@@ -44,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("scene", help="scene TOML file, or a built-in name")
     check.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a parameter")
-    check.add_argument("--integrator", help="time integrator (default: the scene's)")
+    check.add_argument("--integrator", metavar="NAME", help=INTEGRATOR_HELP)
     check.add_argument("--dt", type=float, help="time step [s] (default: the scene's)")
     check.add_argument("--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)")
 
@@ -84,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="full-horizon stage: gradient optimiser or smoothed ensemble Gauss-Newton (auto: ensemble with contact)",
     )
     fit.add_argument("--iterations", type=int, help="most iterations per stage")
-    fit.add_argument("--backend", choices=["jax", "native"], help="simulation backend (default: the experiment's)")
+    fit.add_argument("--backend", choices=BACKENDS, help=BACKEND_HELP)
     fit.add_argument("--noise", type=float, help="relative observation noise of a synthetic target")
     fit.add_argument("--checkpoint-every", type=int, default=5, help="iterations between checkpoints (default 5)")
     fit.add_argument("--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -12,79 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..sim.integrators import INTEGRATORS
-from ..sim.model import Model, check_params, make_model
+from ..sim.model import check_params, make_model
 from ..sim.params import Params
+from ..sim.scene import Scene
 from ..sim.state import State
 from ..sim.topology import NEIGHBOUR_SETS, lattice_faces, lattice_positions, lattice_springs
 
 AXES = {"x": 0, "y": 1, "z": 2}
 DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
-
-
-@dataclasses.dataclass(frozen=True)
-class Scene:
-    """A world ready to simulate.
-
-    Attributes:
-        name: scene name.
-        model: static structure (`Model`).
-        params: physical parameters (`Params`).
-        state: initial state (`State`), x and v of shape (N, 3).
-        faces: triangles for rendering, int (F, 3), possibly empty.
-        steps: default number of steps for `jaxspring run`.
-        save_every: default frame stride.
-        lattice_shape: particles along each lattice axis when the scene is a lattice, else None.
-        description: free text from the scene file.
-
-    Example:
-        >>> scene = js.load_scene("chain")
-        >>> scene = scene.with_params(ks=600.0)
-    """
-
-    name: str
-    model: Model
-    params: Params
-    state: State
-    faces: np.ndarray
-    steps: int = 1000
-    save_every: int = 10
-    lattice_shape: tuple | None = None
-    description: str = ""
-
-    def with_params(self, **values) -> Scene:
-        """A copy with some parameters replaced (validated)."""
-        unknown = [k for k in values if k not in Params.names()]
-        if unknown:
-            raise InputError(unknown[0], "is not a parameter", f"use one of {', '.join(Params.names())}")
-        return dataclasses.replace(self, params=check_params(self.model, self.params.replace(**values)))
-
-    def with_integrator(self, name: str) -> Scene:
-        """A copy that steps with another integrator."""
-        if name not in INTEGRATORS:
-            raise InputError("integrator", f"unknown integrator {name!r}", f"use one of {', '.join(INTEGRATORS)}")
-        return dataclasses.replace(self, model=self.model.replace(integrator=name))
-
-    def with_backend(self, name: str) -> Scene:
-        """A copy whose spring force runs on `name`: "jax" or "native" (the C++ kernel, if built)."""
-        from ..sim.model import check_backend
-
-        return dataclasses.replace(self, model=self.model.replace(backend=check_backend(name)))
-
-    def with_dt(self, dt: float) -> Scene:
-        """A copy that steps with another dt [s]."""
-        dt = float(dt)
-        if not (math.isfinite(dt) and dt > 0):
-            raise InputError("dt", f"must be a finite number > 0, got {dt}", "give a positive time step")
-        return dataclasses.replace(self, model=self.model.replace(dt=dt))
-
-    def with_state(self, state: State) -> Scene:
-        """A copy that starts from another state (same particle count)."""
-        if state.x.shape != self.state.x.shape or state.v.shape != self.state.v.shape:
-            raise InputError(
-                "state", f"shape {state.x.shape} differs from the scene's {self.state.x.shape}", "give x, v of (N, 3)"
-            )
-        return dataclasses.replace(self, state=state)
 
 
 def builtin_scene_dir() -> Path:
@@ -151,7 +85,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     description = top.take("description", _string, default="")
     dt = top.take("dt", _positive, required=True)
     integrator = top.take("integrator", _string, default="semi_implicit_euler")
-    backend = top.take("backend", _string, default="jax")
+    backend = top.take("backend", _string, default="auto")
     steps = top.take("steps", _count, default=1000)
     save_every = top.take("save_every", _count, default=10)
     if save_every < 1 or steps % save_every:

@@ -77,7 +77,7 @@ def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
             format=TRAJECTORY_FORMAT,
             format_version=FORMAT_VERSION,
             scene=scene.name,
-            integrator=model.integrator,
+            integrator=model.integrator.name,
             dt=model.dt,
             dtype=str(x.dtype),
             jaxspring_version=__version__,

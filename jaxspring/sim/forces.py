@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..steppers.layout import to_grid
+
 Y_AXIS = 1
 
 
@@ -44,6 +46,11 @@ def safe_direction(d: jax.Array, length: jax.Array) -> jax.Array:
 def _grid_norm(d: jax.Array) -> jax.Array:
     """safe_norm over the component axis 0 of a grid-layout array (3, *shape), keeping it."""
     return safe_norm(d, keepdims=True, axis=0)
+
+
+def _grid(model, values):
+    """Per-particle values (or a scalar) in the grid layout of the model's lattice."""
+    return to_grid(model.lattice[0], values)
 
 
 def per_item(value: jax.Array) -> jax.Array:
@@ -142,7 +149,7 @@ class Drag:
 
     def grid_force(self, model, params, x, v):
         with jax.named_scope(self.name):
-            coefficient = model.to_grid(params.cd) * model.to_grid(model.drag)
+            coefficient = _grid(model, params.cd) * _grid(model, model.drag)
             return -coefficient * _grid_norm(v) * v
 
     def energy(self, model, params, x):
@@ -161,7 +168,7 @@ class Gravity:
 
     def grid_force(self, model, params, x, v):
         with jax.named_scope(self.name):
-            weight = model.to_grid(model.mass) * params.gravity.reshape((3,) + (1,) * (x.ndim - 1))
+            weight = _grid(model, model.mass) * params.gravity.reshape((3,) + (1,) * (x.ndim - 1))
             return jnp.broadcast_to(weight, x.shape)
 
     def energy(self, model, params, x):
@@ -189,7 +196,7 @@ class Ground:
     def grid_force(self, model, params, x, v):
         with jax.named_scope(self.name):
             depth = params.ground_height - x[Y_AXIS]
-            kg, kgd = (model.to_grid(p) for p in (params.kg, params.kgd))
+            kg, kgd = (_grid(model, p) for p in (params.kg, params.kgd))
             kg, kgd = (p[0] if jnp.ndim(p) else p for p in (kg, kgd))
             normal_force = jnp.where(depth > 0, kg * depth - kgd * v[Y_AXIS], 0.0)
             zero = jnp.zeros_like(normal_force)
@@ -209,3 +216,21 @@ TERM_PARAMETERS = {
     "ground": ("kg", "kgd", "ground_height"),
 }
 TERMS = {term.name: term for term in (Springs(), Drag(), Gravity(), Ground())}
+
+
+def register_term(term, parameters: tuple = ()) -> None:
+    """Make a force term available to models by its name (`model.replace(terms=... + (name,))`).
+
+    A term is a hashable object with `name`, `force(model, params, x, v) -> (N, 3)` [N]
+    and `energy(model, params, x) -> scalar` [J]; with `grid_force(model, params, x, v)`
+    in grid layout (3, *shape) the grid steppers run it too. `parameters` names the
+    `Params` fields it reads. Steppers that do not run it refuse models that use it.
+
+    Example:
+        >>> register_term(LinearDrag(), parameters=("cd",))
+    """
+    known = TERMS.get(term.name)
+    if known is not None and known != term:
+        raise ValueError(f"a different force term is already registered as {term.name!r}")
+    TERMS[term.name] = term
+    TERM_PARAMETERS[term.name] = tuple(parameters)

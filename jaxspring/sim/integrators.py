@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.sparse.linalg import cg, gmres
 
-from ..sim.state import State
+from ..errors import InputError
 
 
 def _acceleration(force, mass, free):
@@ -153,43 +153,108 @@ def backward_euler(force, mass, free, x, v, dt, settings: NewtonSettings = NEWTO
     return x + dt * w, w
 
 
-@dataclasses.dataclass(frozen=True)
 class Integrator:
-    """An integrator and what is known about it."""
+    """A time integrator: a configured, hashable object whose `step` advances (x, v) by dt.
 
-    name: str
-    step: callable
-    order: int
-    explicit: bool
-    description: str
-
-
-INTEGRATORS = {
-    i.name: i
-    for i in (
-        Integrator("semi_implicit_euler", semi_implicit_euler, 1, True, "the seed's; symplectic, 1 force/step"),
-        Integrator("verlet", verlet, 2, True, "velocity Verlet; symplectic, 2 forces/step"),
-        Integrator("rk4", rk4, 4, True, "classic Runge-Kutta; 4 forces/step, slowly loses energy"),
-        Integrator("backward_euler", backward_euler, 1, False, "implicit; unconditionally stable, damps"),
-    )
-}
-
-
-def step(model, params, state: State) -> State:
-    """Advance `state`, in the model's internal layout, by one step `model.dt`.
-
-    Lattice models work in grid layout (3, *shape) with the grid force; others in
-    (N, 3). The integrators only combine arrays elementwise around the force, so the
-    same code serves both. (`model.step` takes and returns the (N, 3) layout.)
+    Subclasses set `name`, `order`, `explicit` and `description`, and implement
+    `step(force, mass, free, x, v, dt) -> (x', v')` (see the module docstring). A
+    model holds one as its static `integrator`; scene files name one (`INTEGRATORS`
+    maps each name to its default instance).
     """
-    integrator = INTEGRATORS[model.integrator].step
-    if not INTEGRATORS[model.integrator].explicit:  # Newton needs forward mode
-        model = model.forward_mode()
-    if model.grid:
-        force = lambda x, v: model.grid_force(params, x, v)  # noqa: E731
-        mass, free = model.to_grid(model.mass), model.to_grid(~model.pinned)
-    else:
-        force = lambda x, v: model.force(params, x, v)  # noqa: E731
-        mass, free = model.mass[:, None], (~model.pinned)[:, None]
-    x, v = integrator(force, mass, free, state.x, state.v, model.dt)
-    return State(x=x, v=v)
+
+    name: str = ""
+    order: int = 0
+    explicit: bool = True
+    description: str = ""
+
+    def step(self, force, mass, free, x, v, dt):
+        raise NotImplementedError
+
+    def __str__(self) -> str:
+        return self.name
+
+
+@dataclasses.dataclass(frozen=True)
+class SemiImplicitEuler(Integrator):
+    """The seed's integrator: v' = v + dt F(x, v) / m, then x' = x + dt v'.
+
+    Example:
+        >>> scene = js.load_scene("chain").with_integrator(js.SemiImplicitEuler())
+    """
+
+    name = "semi_implicit_euler"
+    order = 1
+    description = "the seed's; symplectic, 1 force/step"
+
+    def step(self, force, mass, free, x, v, dt):
+        return semi_implicit_euler(force, mass, free, x, v, dt)
+
+
+@dataclasses.dataclass(frozen=True)
+class Verlet(Integrator):
+    """Velocity Verlet, second order (see `verlet`).
+
+    Example:
+        >>> scene = js.load_scene("chain").with_integrator(js.Verlet())
+    """
+
+    name = "verlet"
+    order = 2
+    description = "velocity Verlet; symplectic, 2 forces/step"
+
+    def step(self, force, mass, free, x, v, dt):
+        return verlet(force, mass, free, x, v, dt)
+
+
+@dataclasses.dataclass(frozen=True)
+class RK4(Integrator):
+    """Classic fourth-order Runge-Kutta (see `rk4`).
+
+    Example:
+        >>> scene = js.load_scene("chain").with_integrator(js.RK4())
+    """
+
+    name = "rk4"
+    order = 4
+    description = "classic Runge-Kutta; 4 forces/step, slowly loses energy"
+
+    def step(self, force, mass, free, x, v, dt):
+        return rk4(force, mass, free, x, v, dt)
+
+
+@dataclasses.dataclass(frozen=True)
+class BackwardEuler(Integrator):
+    """Implicit Euler with a configurable Newton-CG solve (see `backward_euler`).
+
+    Attributes:
+        newton: the solver's settings (`NewtonSettings`).
+
+    Example:
+        >>> stiff = js.BackwardEuler(newton=js.NewtonSettings(tolerance=1e-10, max_newton=30))
+        >>> scene = js.load_scene("hard/stiff_cloth").with_integrator(stiff)
+    """
+
+    newton: NewtonSettings = NEWTON
+    name = "backward_euler"
+    order = 1
+    explicit = False
+    description = "implicit; unconditionally stable, damps"
+
+    def step(self, force, mass, free, x, v, dt):
+        return backward_euler(force, mass, free, x, v, dt, self.newton)
+
+
+INTEGRATORS = {i.name: i for i in (SemiImplicitEuler(), Verlet(), RK4(), BackwardEuler())}
+
+
+def as_integrator(value) -> Integrator:
+    """An `Integrator` from itself or from its name in `INTEGRATORS`.
+
+    Example:
+        >>> as_integrator("rk4")   # RK4()
+    """
+    if isinstance(value, Integrator):
+        return value
+    if isinstance(value, str) and value in INTEGRATORS:
+        return INTEGRATORS[value]
+    raise InputError("integrator", f"unknown integrator {value!r}", f"use one of {', '.join(INTEGRATORS)}")

@@ -9,17 +9,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..sim.forces import TERM_PARAMETERS, TERMS
-from ..sim.integrators import INTEGRATORS
-from ..sim.integrators import step as _integrate
-from ..sim.params import NON_NEGATIVE, PARAMETER_INFO, Params
-from ..sim.state import State
+from ..steppers import Stepper, check_backend, select_stepper
+from .forces import TERM_PARAMETERS, TERMS
+from .integrators import Integrator, SemiImplicitEuler, as_integrator
+from .params import NON_NEGATIVE, PARAMETER_INFO, Params
+from .state import State
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Model:
-    """Topology (arrays) plus which force terms, integrator and dt (static).
+    """Topology (arrays) plus which force terms, integrator, dt and stepper (static).
 
     Attributes:
         springs: particle index pairs (a, b), int32, shape (S, 2).
@@ -27,14 +27,17 @@ class Model:
         mass: particle masses [kg], shape (N,).
         pinned: particles that never move, bool, shape (N,).
         drag: particles that feel air resistance, bool, shape (N,).
-        terms: names of the force terms, e.g. ("springs", "gravity") (static).
-        integrator: name of the time integrator (static).
+        terms: names of the force terms, e.g. ("springs", "gravity") (static; see `TERMS`).
+        integrator: the time integrator, an `Integrator` such as `SemiImplicitEuler()`
+            (static; a name from `INTEGRATORS` is turned into its default instance).
         dt: time step [s] (static).
         lattice: (shape, offsets) when the springs are whole lattice neighbour families
-            in `lattice_springs` order (static); the spring force then runs as array
-            shifts instead of scatters (same numbers, see `Springs`). None otherwise.
-        backend: "jax" (default) or "native": the spring force by the C++ kernel
-            (`jaxspring/steppers/native_kernels.py`; reverse mode and vmap, not forward mode), static.
+            in `lattice_springs` order (static); grid steppers then run the springs as
+            array shifts instead of scatters (same numbers). None otherwise.
+        backend: "auto" (default), "jax" or "native": which steppers may run it (static;
+            see `jaxspring.steppers.select_stepper`).
+        stepper: how its steps run (static), chosen from the backend when the model is
+            built or changed; give one to insist on it (refused if it cannot run the model).
 
     Build one with `make_model`; a loaded scene carries one as `scene.model`.
     """
@@ -45,10 +48,22 @@ class Model:
     pinned: jax.Array
     drag: jax.Array
     terms: tuple = dataclasses.field(metadata=dict(static=True), default=())
-    integrator: str = dataclasses.field(metadata=dict(static=True), default="semi_implicit_euler")
+    integrator: Integrator = dataclasses.field(metadata=dict(static=True), default=SemiImplicitEuler())
     dt: float = dataclasses.field(metadata=dict(static=True), default=1e-3)
     lattice: tuple | None = dataclasses.field(metadata=dict(static=True), default=None)
-    backend: str = dataclasses.field(metadata=dict(static=True), default="jax")
+    backend: str = dataclasses.field(metadata=dict(static=True), default="auto")
+    stepper: Stepper | None = dataclasses.field(metadata=dict(static=True), default=None)
+
+    def __post_init__(self):
+        if not isinstance(self.integrator, Integrator):
+            object.__setattr__(self, "integrator", as_integrator(self.integrator))
+        for name in self.terms:
+            if name not in TERMS:
+                raise InputError("terms", f"unknown force term {name!r}", "register it with `register_term` first")
+        if self.stepper is None:
+            object.__setattr__(self, "stepper", select_stepper(self))
+        elif (reason := self.stepper.refusal(self)) is not None:
+            raise InputError("stepper", reason, "choose another stepper, or backend='auto'")
 
     @property
     def particle_count(self) -> int:
@@ -58,107 +73,39 @@ class Model:
     def spring_count(self) -> int:
         return int(self.springs.shape[0])
 
+    @property
+    def force_terms(self) -> tuple:
+        """The force term objects, in order (see `TERMS`)."""
+        return tuple(TERMS[name] for name in self.terms)
+
     def has(self, term: str) -> bool:
         return term in self.terms
 
-    @property
-    def native_lattice(self) -> bool:
-        """Whether whole steps run in the native lattice kernel (lattice, semi-implicit Euler, "native")."""
-        return self.backend == "native" and self.lattice is not None and self.integrator == "semi_implicit_euler"
-
-    @property
-    def grid(self) -> bool:
-        """Whether steps run in grid layout (a lattice on the pure-JAX backend or the native lattice kernel)."""
-        return self.lattice is not None and (self.backend == "jax" or self.native_lattice)
-
     def forward_mode(self) -> Model:
-        """This model on the pure-JAX backend, for jvp/jacfwd (the native kernels are reverse-mode only).
-
-        It keeps the native model's internal layout, so states pass between them.
-        """
-        if self.backend == "jax":
-            return self
-        return self.replace(backend="jax", lattice=self.lattice if self.grid else None)
+        """This model on its stepper's pure-JAX twin, for jvp/jacfwd (the native steppers are
+        reverse-mode only). The twin keeps the internal layout, so states pass between them."""
+        return self if self.stepper.forward_mode else self.replace(stepper=self.stepper.pure_jax())
 
     def force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
         """Total force on every particle [N], shape (N, 3)."""
-        if self.grid:
-            return self.from_grid(self.grid_force(params, self.to_grid(x), self.to_grid(v)))
-        total = jnp.zeros_like(x)
-        for name in self.terms:
-            total = total + TERMS[name].force(self, params, x, v)
-        return total
-
-    # Lattice models step in "grid layout": arrays (3, *shape), components first, so the
-    # spring families are shifts along the lattice axes and the innermost loop runs
-    # along the lattice's last axis (vectorisable), not over 3 components.
-
-    def to_grid(self, values: jax.Array) -> jax.Array:
-        """(N, 3) -> (3, *shape); (N,) -> (1, *shape); a scalar stays a scalar."""
-        shape = self.lattice[0]
-        values = jnp.asarray(values)
-        if values.ndim == 0:
-            return values
-        if values.ndim == 1:
-            return values.reshape((1,) + shape)
-        return jnp.moveaxis(values, -1, 0).reshape((3,) + shape)
-
-    def from_grid(self, values: jax.Array) -> jax.Array:
-        """(3, *shape) -> (N, 3)."""
-        return jnp.moveaxis(values.reshape((3, -1)), 0, -1)
-
-    def grid_force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
-        """Total force in grid layout (lattice models only)."""
-        total = jnp.zeros_like(x)
-        for name in self.terms:
-            total = total + TERMS[name].grid_force(self, params, x, v)
-        return total
-
-    def to_internal(self, state: State) -> State:
-        """The state in the layout the step works in (grid layout for lattices)."""
-        if not self.grid:
-            return state
-        return State(x=self.to_grid(state.x), v=self.to_grid(state.v))
-
-    def from_internal(self, state: State) -> State:
-        if not self.grid:
-            return state
-        return State(x=self.from_grid(state.x), v=self.from_grid(state.v))
-
-    def positions_from_internal(self, x: jax.Array) -> jax.Array:
-        """Internal-layout positions with leading axes (..., layout) -> (..., N, 3)."""
-        if not self.grid:
-            return x
-        lead = x.shape[: x.ndim - 1 - len(self.lattice[0])]
-        return jnp.moveaxis(x.reshape(lead + (3, -1)), -2, -1)
+        return self.stepper.force(self, params, x, v)
 
     def energy(self, params: Params, state: State) -> jax.Array:
         """Total mechanical energy [J]: kinetic plus every term's potential."""
         kinetic = 0.5 * jnp.sum(self.mass[:, None] * state.v**2)
-        potential = sum(TERMS[name].energy(self, params, state.x) for name in self.terms)
+        potential = sum(term.energy(self, params, state.x) for term in self.force_terms)
         return kinetic + potential
 
     def step(self, params: Params, state: State) -> State:
-        """Advance one time step dt with the model's integrator."""
-        return self.from_internal(self.step_internal(params, self.to_internal(state)))
-
-    def step_internal(self, params: Params, state: State) -> State:
-        """One step on a state in the internal layout (see `to_internal`)."""
-        if self.native_lattice:
-            return self.advance(params, state, 1)
-        return _integrate(self, params, state)
-
-    def advance(self, params: Params, state: State, steps: int) -> State:
-        """`steps` steps (static) on a state in the internal layout: one native call for
-        native lattice models, a `lax.scan` of `step_internal` otherwise."""
-        if self.native_lattice:
-            from ..steppers.native_kernels import lattice_advance
-
-            return State(*lattice_advance(self, params, state.x, state.v, steps))
-        step = lambda current, _: (self.step_internal(params, current), None)  # noqa: E731
-        return jax.lax.scan(step, state, None, length=steps)[0]
+        """Advance one time step dt with the model's integrator ((N, 3) layout in and out)."""
+        stepper = self.stepper
+        return stepper.from_internal(self, stepper.step(self, params, stepper.to_internal(self, state)))
 
     def replace(self, **changes) -> Model:
+        """A copy with some fields changed; the stepper is chosen again unless given
+        (a change of integrator, terms, lattice or backend may change which one runs it)."""
+        if "stepper" not in changes and changes.keys() & {"integrator", "terms", "lattice", "backend"}:
+            changes["stepper"] = None
         return dataclasses.replace(self, **changes)
 
     def required_parameters(self) -> tuple[str, ...]:
@@ -175,10 +122,10 @@ def make_model(
     drag=None,
     gravity: bool = True,
     ground: bool = False,
-    integrator: str = "semi_implicit_euler",
+    integrator: Integrator | str = "semi_implicit_euler",
     dt: float = 1e-3,
     lattice_shape=None,
-    backend: str = "jax",
+    backend: str = "auto",
 ) -> Model:
     """Build and validate a Model.
 
@@ -190,11 +137,14 @@ def make_model(
         pinned: bool (N,) mask or a list of particle indices; default none.
         drag: bool (N,) mask, True/False for all; default none. Any set flag adds the drag term.
         gravity, ground: whether the scene has these terms.
-        integrator: one of `jaxspring.INTEGRATORS`.
+        integrator: an `Integrator` (e.g. `js.BackwardEuler(newton=js.NewtonSettings(...))`)
+            or the name of one in `jaxspring.INTEGRATORS`.
         dt: time step [s].
         lattice_shape: the particles' lattice shape when they form one (C order); if
             the springs are whole neighbour families of it, the structured fast path is used.
-        backend: "jax" or "native" (the C++ spring kernel; "jax" with a notice if not built).
+        backend: "auto" (default: the fastest stepper that runs the model), "jax" (pure JAX,
+            needed for forward mode through a rollout) or "native" (the C++ kernels; "jax"
+            with a notice if they are not built). See `jaxspring.steppers.select_stepper`.
 
     Example:
         >>> model = make_model([[0, 1]], mass=[1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]],
@@ -237,8 +187,7 @@ def make_model(
         raise InputError("rest_length", "must be >= 0", "give non-negative rest lengths")
     pinned_np = _mask("pinned", pinned, count, default=False)
     drag_np = _mask("drag", drag, count, default=False)
-    if integrator not in INTEGRATORS:
-        raise InputError("integrator", f"unknown integrator {integrator!r}", f"use one of {', '.join(INTEGRATORS)}")
+    integrator = as_integrator(integrator)
     if not (np.isfinite(dt) and dt > 0):
         raise InputError("dt", f"must be a finite number > 0, got {dt}", "set a positive time step")
     terms = []
@@ -262,22 +211,6 @@ def make_model(
         lattice=lattice_layout(springs_np, lattice_shape, count),
         backend=check_backend(backend),
     )
-
-
-BACKENDS = ("jax", "native")
-
-
-def check_backend(name: str) -> str:
-    """Validate a backend name; "native" without the built kernel falls back to "jax" with a notice."""
-    if name not in BACKENDS:
-        raise InputError("backend", f"unknown backend {name!r}", f"use one of {', '.join(BACKENDS)}")
-    if name == "native":
-        from ..steppers import native_kernels as _native
-
-        if not _native.available():
-            _native.notice_unavailable()
-            return "jax"
-    return name
 
 
 def lattice_layout(springs: np.ndarray, shape, count: int):

@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 
 from ..errors import InputError
-from ..sim.model import Model
-from ..sim.params import Params
-from ..sim.state import State, Trajectory
+from .model import Model
+from .params import Params
+from .state import State, Trajectory
 
 
 def rollout(model: Model, params: Params, state: State, steps: int, save_every: int = 1, checkpoint=None) -> Trajectory:
@@ -91,12 +91,20 @@ def _frame_count(steps, save_every) -> int:
 def _simulate(model, params, state, frames, save_every):
     """(end state, x, v (frames, N, 3)); the scan runs in the model's internal layout."""
 
+    stepper = model.stepper
+
     def one_frame(current, _):
-        current = model.advance(params, current, save_every)
+        current = stepper.advance(model, params, current, save_every)
         return current, (current.x, current.v)
 
-    end, (x, v) = jax.lax.scan(one_frame, model.to_internal(state), None, length=frames)
-    return model.from_internal(end), model.positions_from_internal(x), model.positions_from_internal(v)
+    end, (x, v) = jax.lax.scan(one_frame, stepper.to_internal(model, state), None, length=frames)
+    return _outside(model, end, x, v)
+
+
+def _outside(model, end, x, v):
+    """End state and frames from the stepper's layout back to (N, 3)."""
+    stepper = model.stepper
+    return stepper.from_internal(model, end), stepper.array_from_internal(model, x), stepper.array_from_internal(model, v)
 
 
 def _segment_length(checkpoint, steps: int):
@@ -118,11 +126,12 @@ def _simulate_checkpointed(model, params, state, frames, save_every, segment):
     backward pass keeps one state per segment plus one per step of the segment
     being differentiated.
     """
-    step = jax.checkpoint(lambda current: model.step_internal(params, current))
+    stepper = model.stepper
+    step = jax.checkpoint(lambda current: stepper.step(model, params, current))
 
     def run(current, length):
-        if model.native_lattice:  # one call; its reverse pass keeps one state per step of it
-            return model.advance(params, current, length)
+        if stepper.fused:  # one call; its reverse pass keeps its own checkpoints
+            return stepper.advance(model, params, current, length)
         return jax.lax.scan(lambda c, _: (step(c), None), current, None, length=length)[0]
 
     if save_every >= segment:
@@ -135,8 +144,8 @@ def _simulate_checkpointed(model, params, state, frames, save_every, segment):
                 current = jax.checkpoint(lambda c: run(c, rest))(current)
             return current, (current.x, current.v)
 
-        end, (x, v) = jax.lax.scan(one_frame, model.to_internal(state), None, length=frames)
-        return model.from_internal(end), model.positions_from_internal(x), model.positions_from_internal(v)
+        end, (x, v) = jax.lax.scan(one_frame, stepper.to_internal(model, state), None, length=frames)
+        return _outside(model, end, x, v)
 
     per_block = max(1, segment // save_every)
     blocks, rest = divmod(frames, per_block)
@@ -149,12 +158,12 @@ def _simulate_checkpointed(model, params, state, frames, save_every, segment):
         return jax.lax.scan(frame, current, None, length=count)
 
     checkpointed = jax.checkpoint(lambda c: block(c, per_block))
-    end, (x, v) = jax.lax.scan(lambda c, _: checkpointed(c), model.to_internal(state), None, length=blocks)
+    end, (x, v) = jax.lax.scan(lambda c, _: checkpointed(c), stepper.to_internal(model, state), None, length=blocks)
     x, v = x.reshape((-1,) + x.shape[2:]), v.reshape((-1,) + v.shape[2:])
     if rest:
         end, (xr, vr) = jax.checkpoint(lambda c: block(c, rest))(end)
         x, v = jnp.concatenate([x, xr]), jnp.concatenate([v, vr])
-    return model.from_internal(end), model.positions_from_internal(x), model.positions_from_internal(v)
+    return _outside(model, end, x, v)
 
 
 def energy(model: Model, params: Params, state: State) -> jax.Array:

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..io.scene import Scene
-from ..sim.rollout import _frame_count, _simulate
-from ..sim.stability import (
+from .rollout import _frame_count, _simulate
+from .stability import (
     BlowUp,
     StabilityEstimate,
     energy_threshold,
@@ -20,7 +20,7 @@ from ..sim.stability import (
     first_bad_frame,
     locate_blowup,
 )
-from ..sim.state import State, Trajectory
+from .state import State, Trajectory
 
 CHUNK_STEPS = 2000
 

@@ -10,12 +10,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..sim.forces import TERMS
-from ..sim.integrators import INTEGRATORS
-from ..sim.model import Model
-from ..sim.params import Params
-from ..sim.rollout import _simulate, energy
-from ..sim.state import State, Trajectory
+from .integrators import INTEGRATORS, as_integrator
+from .model import Model
+from .params import Params
+from .rollout import _simulate, energy
+from .state import State, Trajectory
 
 ENERGY_GAIN_FACTOR = 0.5  # energy may not grow by more than this fraction of the energy scale
 
@@ -89,13 +88,14 @@ def estimate_stability(model: Model, params: Params, state: State, iterations: i
         damping += float(np.max(np.asarray(params.kgd) * scale))
     omega, damping = math.sqrt(max(omega_sq, 0.0)), max(damping, 0.0)
     bounds = {name: stable_dt(name, omega, damping) for name in INTEGRATORS}
-    return StabilityEstimate(omega, damping, bounds[model.integrator], model.dt, model.integrator, bounds)
+    name = model.integrator.name
+    return StabilityEstimate(omega, damping, bounds[name], model.dt, name, bounds)
 
 
 @functools.cache
-def _amplification(name):
+def _amplification(integrator):
     """The step's 2 x 2 amplification matrix on x'' = -w^2 x - c x', as a function of (w, c, dt)."""
-    step = INTEGRATORS[name].step
+    step = integrator.step
     one = jnp.ones((1, 1))
 
     def advance(y, omega, damping, dt):
@@ -105,7 +105,7 @@ def _amplification(name):
     return jax.jit(jax.jacfwd(advance))
 
 
-def stable_dt(integrator: str, omega: float, damping: float = 0.0) -> float:
+def stable_dt(integrator, omega: float, damping: float = 0.0) -> float:
     """Largest dt at which `integrator` is stable on x'' = -omega^2 x - damping x' [s].
 
     Bisection on the spectral radius of the integrator's own amplification matrix
@@ -119,7 +119,7 @@ def stable_dt(integrator: str, omega: float, damping: float = 0.0) -> float:
     rate = max(omega, damping)
     if rate <= 0:
         return math.inf
-    matrix = _amplification(integrator)
+    matrix = _amplification(as_integrator(integrator))
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
     y0 = jnp.zeros(2, dtype)
 
@@ -209,8 +209,8 @@ def energy_threshold(model: Model, params: Params, state: State) -> float:
     x = np.asarray(state.x)
     size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0))) + 1.0
     scale = 1.0 + abs(e0) + 0.5 * float(np.sum(np.asarray(model.mass)[:, None] * np.asarray(state.v) ** 2))
-    for name in model.terms:
-        scale += abs(float(TERMS[name].energy(model, params, state.x)))
+    for term in model.force_terms:
+        scale += abs(float(term.energy(model, params, state.x)))
     if model.has("gravity"):
         scale += float(np.sum(np.asarray(model.mass)) * np.linalg.norm(np.asarray(params.gravity))) * size
     return e0 + ENERGY_GAIN_FACTOR * scale

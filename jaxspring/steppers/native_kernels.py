@@ -149,6 +149,15 @@ def spring_force(x, v, pairs, rest, ks, kd):
 
 _DRAG, _GRAVITY, _GROUND = 1, 2, 4
 
+# Test hooks of the lattice kernel, sent with every call as its `test` attribute (zero
+# otherwise; read when a call is traced, so a test that sets them clears JAX's caches):
+# _TEST_IMPATIENT makes the backward call's first thread give up on the second at its first
+# replay and replays the rest alone (as when the second core is slow); _TEST_OUT_OF_MEMORY
+# makes the backward call's allocation of replayed states fail (as for a lattice too
+# large for memory), which raises an error in Python.
+_TEST_IMPATIENT, _TEST_OUT_OF_MEMORY = 1, 2
+_test_hooks = 0
+
 
 def _lattice_inputs(model, params, dtype):
     """The kernel's parameter arrays, one value per spring / particle, in `dtype`; ks and kd
@@ -196,6 +205,7 @@ def _attributes(config):
         dt=np.float64(dt),
         flags=np.int64(flags),
         stride=np.int64(stride),
+        test=np.int64(_test_hooks),
     )
 
 

@@ -5,41 +5,24 @@
 // f = m u; force_a += f, force_b -= f. The backward kernel is the exact transpose
 // of this map's derivative (see jaxspring/steppers/native_kernels.py for the formulas).
 #include <algorithm>
-#include <cmath>
 #include <cstdint>
+#include <exception>
 #include <thread>
 #include <vector>
 
+#include "spring_law.h"
+#include "support.h"
 #include "xla/ffi/api/ffi.h"
 
-namespace ffi = xla::ffi;
-
+namespace jaxspring::native {
 namespace {
 
+// Spring s of the (particle, component) arrays x and v (positions, velocities), a, b
+// its ends.
 template <typename T>
-struct Geometry {
-  T d[3], dv[3], u[3], inv, e, c, m;
-};
-
-template <typename T>
-inline Geometry<T> geometry(const T* x, const T* v, int64_t a, int64_t b, T rest, T ks, T kd) {
-  Geometry<T> g;
-  T sq = 0;
-  for (int k = 0; k < 3; ++k) {
-    g.d[k] = x[3 * b + k] - x[3 * a + k];
-    g.dv[k] = v[3 * b + k] - v[3 * a + k];
-    sq += g.d[k] * g.d[k];
-  }
-  T length = sq > 0 ? std::sqrt(sq) : T(0);
-  g.inv = length > 0 ? T(1) / length : T(1);
-  g.c = 0;
-  for (int k = 0; k < 3; ++k) {
-    g.u[k] = g.d[k] * g.inv;
-    g.c += g.dv[k] * g.u[k];
-  }
-  g.e = length - rest;
-  g.m = ks * g.e + kd * g.c;
-  return g;
+inline Spring<T> MeasureAt(const T* x, const T* v, int64_t a, int64_t b, T rest) {
+  return Measure(x[3 * b] - x[3 * a], x[3 * b + 1] - x[3 * a + 1], x[3 * b + 2] - x[3 * a + 2], v[3 * b] - v[3 * a],
+                 v[3 * b + 1] - v[3 * a + 1], v[3 * b + 2] - v[3 * a + 2], rest);
 }
 
 // The i-th spring of [first, last) in processing order: the even ones, then the odd
@@ -55,12 +38,14 @@ constexpr int64_t kSpringsPerThread = 50000;
 
 inline int thread_count(int64_t springs) {
   if (springs < 2 * kSpringsPerThread) return 1;
-  static const int64_t hardware = std::max(1u, std::thread::hardware_concurrency());  // a system call: once
-  return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(hardware, springs / kSpringsPerThread)));
+  const int64_t usable = UsableThreads();
+  return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(usable, springs / kSpringsPerThread)));
 }
 
 // Runs body(first, last, slot) over [0, springs) split into contiguous ranges, one per
 // thread; slot 0 writes the caller's buffers, the others private ones summed afterwards.
+// An exception (a thread that cannot start, or one thrown by body) is rethrown once
+// every thread started has ended.
 template <typename Body>
 void parallel_springs(int64_t springs, Body body) {
   const int threads = thread_count(springs);
@@ -68,13 +53,29 @@ void parallel_springs(int64_t springs, Body body) {
     body(0, springs, 0);
     return;
   }
+  std::vector<std::exception_ptr> failures(threads);
+  auto guarded = [&](int64_t first, int64_t last, int slot) {
+    try {
+      body(first, last, slot);
+    } catch (...) {
+      failures[slot] = std::current_exception();
+    }
+  };
   std::vector<std::thread> pool;
+  pool.reserve(threads - 1);
   const int64_t chunk = (springs + threads - 1) / threads;
-  for (int t = 1; t < threads; ++t) {
-    pool.emplace_back(body, t * chunk, std::min(springs, (t + 1) * chunk), t);
+  try {
+    for (int t = 1; t < threads; ++t) {
+      pool.emplace_back(guarded, t * chunk, std::min(springs, (t + 1) * chunk), t);
+    }
+    guarded(0, std::min(springs, chunk), 0);
+  } catch (...) {
+    failures[0] = std::current_exception();
   }
-  body(0, std::min(springs, chunk), 0);
   for (auto& thread : pool) thread.join();
+  for (const auto& failure : failures) {
+    if (failure) std::rethrow_exception(failure);
+  }
 }
 
 template <ffi::DataType DT>
@@ -98,12 +99,15 @@ ffi::Error Forward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> p
     for (int64_t i = 0; i < last - first; ++i) {
       const int64_t s = spring_at(i, first, last);
       const int64_t a = p[2 * s], b = p[2 * s + 1];
-      Geometry<T> g = geometry(xs, vs, a, b, r[s], k_s[ks_each ? s : 0], k_d[kd_each ? s : 0]);
-      for (int k = 0; k < 3; ++k) {
-        const T fk = g.m * g.u[k];
-        f[3 * a + k] += fk;
-        f[3 * b + k] -= fk;
-      }
+      const Spring<T> g = MeasureAt(xs, vs, a, b, r[s]);
+      const T m = Magnitude(g, k_s[ks_each ? s : 0], k_d[kd_each ? s : 0]);
+      const T f0 = m * g.u0, f1 = m * g.u1, f2 = m * g.u2;
+      f[3 * a] += f0;
+      f[3 * a + 1] += f1;
+      f[3 * a + 2] += f2;
+      f[3 * b] -= f0;
+      f[3 * b + 1] -= f1;
+      f[3 * b + 2] -= f2;
     }
   });
   for (const auto& buffer : extra)
@@ -143,30 +147,20 @@ ffi::Error Backward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> 
       const int64_t s = spring_at(i, first, last);
       const int64_t a = p[2 * s], b = p[2 * s + 1];
       const T spring_ks = k_s[ks_each ? s : 0], spring_kd = k_d[kd_each ? s : 0];
-      Geometry<T> g = geometry(xs, vs, a, b, r[s], spring_ks, spring_kd);
-      T cf[3], uc = 0;
+      const Spring<T> g = MeasureAt(xs, vs, a, b, r[s]);
+      const T c0 = ct[3 * a] - ct[3 * b], c1 = ct[3 * a + 1] - ct[3 * b + 1], c2 = ct[3 * a + 2] - ct[3 * b + 2];
+      const SpringCotangent<T> c =
+          Adjoint(g, spring_ks, spring_kd, Magnitude(g, spring_ks, spring_kd), Along(g, c0, c1, c2), c0, c1, c2);
+      const T dd[3] = {c.d0, c.d1, c.d2}, dw[3] = {c.w0, c.w1, c.w2};
       for (int k = 0; k < 3; ++k) {
-        cf[k] = ct[3 * a + k] - ct[3 * b + k];
-        uc += g.u[k] * cf[k];
+        gx[3 * b + k] += dd[k];
+        gx[3 * a + k] -= dd[k];
+        gv[3 * b + k] += dw[k];
+        gv[3 * a + k] -= dw[k];
       }
-      const T ct_c = spring_kd * uc;  // m = ks e + kd c
-      T ct_u[3], u_ct_u = 0;
-      for (int k = 0; k < 3; ++k) {
-        ct_u[k] = g.m * cf[k] + g.dv[k] * ct_c;  // from f = m u and c = dv . u
-        u_ct_u += g.u[k] * ct_u[k];
-      }
-      const T ct_length = spring_ks * uc - g.inv * u_ct_u;  // u = d / L
-      for (int k = 0; k < 3; ++k) {
-        const T ct_d = g.inv * ct_u[k] + g.u[k] * ct_length;
-        const T ct_dv = g.u[k] * ct_c;
-        gx[3 * b + k] += ct_d;
-        gx[3 * a + k] -= ct_d;
-        gv[3 * b + k] += ct_dv;
-        gv[3 * a + k] -= ct_dv;
-      }
-      gks[s] = g.e * uc;
-      gkd[s] = g.c * uc;
-      grest[s] = -spring_ks * uc;
+      gks[s] = c.ks;
+      gkd[s] = c.kd;
+      grest[s] = c.rest;
     }
   });
   for (int t = 0; t < threads - 1; ++t) {
@@ -178,10 +172,31 @@ ffi::Error Backward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> 
   return ffi::Error::Success();
 }
 
+template <ffi::DataType DT>
+ffi::Error GuardedForward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> pairs, ffi::Buffer<DT> rest,
+                          ffi::Buffer<DT> ks, ffi::Buffer<DT> kd, ffi::ResultBuffer<DT> force) {
+  return Guarded("springs", [&] { return Forward<DT>(x, v, pairs, rest, ks, kd, force); });
+}
+
+template <ffi::DataType DT>
+ffi::Error GuardedBackward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> pairs, ffi::Buffer<DT> rest,
+                           ffi::Buffer<DT> ks, ffi::Buffer<DT> kd, ffi::Buffer<DT> cotangent,
+                           ffi::ResultBuffer<DT> ct_x, ffi::ResultBuffer<DT> ct_v, ffi::ResultBuffer<DT> ct_ks,
+                           ffi::ResultBuffer<DT> ct_kd, ffi::ResultBuffer<DT> ct_rest) {
+  return Guarded("springs backward", [&] {
+    return Backward<DT>(x, v, pairs, rest, ks, kd, cotangent, ct_x, ct_v, ct_ks, ct_kd, ct_rest);
+  });
+}
+
 }  // namespace
+}  // namespace jaxspring::native
+
+namespace ffi = xla::ffi;
+using jaxspring::native::GuardedBackward;
+using jaxspring::native::GuardedForward;
 
 #define JAXSPRING_FORWARD(name, DT)                                                                   \
-  XLA_FFI_DEFINE_HANDLER_SYMBOL(name, Forward<DT>,                                                    \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(name, GuardedForward<DT>,                                                 \
                                 ffi::Ffi::Bind()                                                      \
                                     .Arg<ffi::Buffer<DT>>()                                           \
                                     .Arg<ffi::Buffer<DT>>()                                           \
@@ -192,7 +207,7 @@ ffi::Error Backward(ffi::Buffer<DT> x, ffi::Buffer<DT> v, ffi::Buffer<ffi::S32> 
                                     .Ret<ffi::Buffer<DT>>());
 
 #define JAXSPRING_BACKWARD(name, DT)                                                                  \
-  XLA_FFI_DEFINE_HANDLER_SYMBOL(name, Backward<DT>,                                                   \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(name, GuardedBackward<DT>,                                                \
                                 ffi::Ffi::Bind()                                                      \
                                     .Arg<ffi::Buffer<DT>>()                                           \
                                     .Arg<ffi::Buffer<DT>>()                                           \
