@@ -61,7 +61,7 @@ __all__ = [
     "NewtonSettings",
 ]
 
-from .fit.core import FitProgress, FitResult, FitSettings, Identifiability, fit, fit_batch, identifiability  # noqa: E402
+from .fit import FitProgress, FitResult, FitSettings, Identifiability, fit, fit_batch, identifiability  # noqa: E402
 from .fit.observations import Observations, observations_from_trajectory, synthetic_observations  # noqa: E402
 from .io.experiment import Experiment, load_experiment, observations_from_file  # noqa: E402
 from .io.fit_file import load_fit_progress, save_fit  # noqa: E402

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .io.scene import Scene
 from .io.trajectory import atomic_path
+from .sim.scene import Scene
 from .sim.state import Trajectory
 
 # World (x, y, z) with y up -> matplotlib's (x, y, z) with z up.

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..io.scene import Scene
 from ..sim.rollout import rollout
+from ..sim.scene import Scene
 from ..sim.state import State, Trajectory
 
 

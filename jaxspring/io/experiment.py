@@ -7,20 +7,12 @@ import tomllib
 from pathlib import Path
 
 from ..errors import InputError
-from ..fit.core import FitSettings
 from ..fit.observations import Observations, observations_from_trajectory, synthetic_observations
-from ..io.scene import (
-    Scene,
-    _count,
-    _index_list,
-    _non_negative_values,
-    _number,
-    _string,
-    _string_list,
-    _Table,
-    load_scene,
-)
-from ..io.trajectory import load_trajectory
+from ..fit.settings import FitSettings
+from ..sim.scene import Scene
+from . import schema
+from .scene import load_scene
+from .trajectory import load_trajectory
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,26 +101,26 @@ def load_experiment(path) -> Experiment:
 
 
 def _experiment_from_dict(document: dict, path: Path) -> Experiment:
-    top = _Table(document, "")
-    name = top.take("name", _string, default=path.stem)
-    description = top.take("description", _string, default="")
-    scene_ref = top.take("scene", _string, required=True)
+    top = schema.Table(document, "")
+    name = top.take("name", schema.string, default=path.stem)
+    description = top.take("description", schema.string, default="")
+    scene_ref = top.take("scene", schema.string, required=True)
     candidate = (path.parent / scene_ref).resolve()
     scene = load_scene(candidate if candidate.is_file() else scene_ref)
 
     target = top.table("target", required=True)
-    target_file = target.take("file", _string)
+    target_file = target.take("file", schema.string)
     if target_file is not None:
         target_file = str(path.parent / target_file)
-    steps = target.take("steps", _count, default=scene.steps)
-    save_every = target.take("save_every", _count, default=scene.save_every)
-    noise = target.take("noise", _number, default=0.0)
-    seed = target.take("seed", _count, default=0)
-    particles = target.take("particles", _index_list)
+    steps = target.take("steps", schema.count, default=scene.steps)
+    save_every = target.take("save_every", schema.count, default=scene.save_every)
+    noise = target.take("noise", schema.number, default=0.0)
+    seed = target.take("seed", schema.count, default=0)
+    particles = target.take("particles", schema.index_list)
     true_table = target.table("true")
     true_values = None
     if true_table is not None:
-        true_values = {k: true_table.take(k, _non_negative_values) for k in list(true_table.data)}
+        true_values = {k: true_table.take(k, schema.non_negative_values) for k in list(true_table.data)}
     target.finish()
     if noise < 0:
         raise InputError("target.noise", "must be >= 0", "give a relative noise level such as 0.01")
@@ -138,25 +130,25 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         )
 
     fit_table = top.table("fit", required=True)
-    params = tuple(fit_table.take("params", _string_list, required=True))
+    params = tuple(fit_table.take("params", schema.string_list, required=True))
     init_table = fit_table.table("init")
     init = {}
     if init_table is not None:
-        init = {k: init_table.take(k, _non_negative_values) for k in list(init_table.data)}
+        init = {k: init_table.take(k, schema.non_negative_values) for k in list(init_table.data)}
     defaults = FitSettings()
     settings = FitSettings(
-        optimizer=fit_table.take("optimizer", _string, default=defaults.optimizer),
-        iterations=fit_table.take("iterations", _count, default=defaults.iterations),
-        learning_rate=fit_table.take("learning_rate", _number, default=defaults.learning_rate),
-        clip=fit_table.take("clip", _number, default=defaults.clip),
-        strategy=fit_table.take("strategy", _string, default=defaults.strategy),
-        segment_frames=fit_table.take("segment_frames", _count, default=defaults.segment_frames),
-        long_horizon_steps=fit_table.take("long_horizon_steps", _count, default=defaults.long_horizon_steps),
-        tolerance=fit_table.take("tolerance", _number, default=defaults.tolerance),
-        ensemble=fit_table.take("ensemble", _string, default=defaults.ensemble),
-        ensemble_members=fit_table.take("ensemble_members", _count, default=defaults.ensemble_members),
+        optimizer=fit_table.take("optimizer", schema.string, default=defaults.optimizer),
+        iterations=fit_table.take("iterations", schema.count, default=defaults.iterations),
+        learning_rate=fit_table.take("learning_rate", schema.number, default=defaults.learning_rate),
+        clip=fit_table.take("clip", schema.number, default=defaults.clip),
+        strategy=fit_table.take("strategy", schema.string, default=defaults.strategy),
+        segment_frames=fit_table.take("segment_frames", schema.count, default=defaults.segment_frames),
+        long_horizon_steps=fit_table.take("long_horizon_steps", schema.count, default=defaults.long_horizon_steps),
+        tolerance=fit_table.take("tolerance", schema.number, default=defaults.tolerance),
+        ensemble=fit_table.take("ensemble", schema.string, default=defaults.ensemble),
+        ensemble_members=fit_table.take("ensemble_members", schema.count, default=defaults.ensemble_members),
     )
-    backend = fit_table.take("backend", _string)
+    backend = fit_table.take("backend", schema.string)
     fit_table.finish()
     top.finish()
     try:

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from ..fit.core import FitProgress, FitResult
+from ..fit.results import FitProgress, FitResult
 from ..io.trajectory import atomic_path
 
 FIT_FORMAT = "jaxspring.fit"

@@ -14,9 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from ..io.scene import Scene
 from ..sim.model import check_params, make_model
 from ..sim.params import Params
+from ..sim.scene import Scene
 from ..sim.state import State, Trajectory
 
 TRAJECTORY_FORMAT = "jaxspring.trajectory"

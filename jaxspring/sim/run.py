@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..io.scene import Scene
 from .rollout import _frame_count, _simulate
+from .scene import Scene
 from .stability import (
     BlowUp,
     StabilityEstimate,

@@ -1,0 +1,131 @@
+"""Pieces every subcommand shares: the parser class, scene preparation, output checks."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from ..sim.integrators import INTEGRATORS
+
+EXIT_USER_ERROR = 2
+INTEGRATOR_HELP = f"time integrator: {', '.join(INTEGRATORS)} (default: the scene's)"
+
+
+class Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit code 2
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message}; see `{self.prog} --help`\n")
+
+
+BACKEND_HELP = (
+    "auto (default): the native C++ lattice kernel where it is built and runs the scene, else pure JAX; "
+    "jax: pure JAX (forward mode); native: the C++ kernels"
+)
+
+
+def add_common(sub):
+    sub.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="floating-point precision")
+    sub.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def parse_sets(items) -> dict:
+    from ..errors import InputError
+
+    values = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise InputError("--set", f"{item!r} is not NAME=VALUE", "write e.g. --set ks=600")
+        try:
+            value = float(text)
+        except ValueError:
+            raise InputError(f"--set {name}", f"{text!r} is not a number", f"write e.g. --set {name}=600") from None
+        if not math.isfinite(value):
+            raise InputError(f"--set {name}", "must be finite", "give a finite number")
+        values[name.strip()] = value
+    return values
+
+
+def prepare_scene(args):
+    from ..errors import InputError
+    from ..io.scene import load_scene
+
+    scene = load_scene(args.scene)
+    if args.integrator:
+        scene = scene.with_integrator(args.integrator)
+    if getattr(args, "dt", None) is not None:
+        scene = scene.with_dt(args.dt)
+    if getattr(args, "backend", None):
+        scene = scene.with_backend(args.backend)
+    overrides = parse_sets(args.set)
+    if overrides:
+        scene = scene.with_params(**overrides)
+    if args.command == "check":
+        return scene, None, None
+    steps = scene.steps if args.steps is None else args.steps
+    save_every = scene.save_every if args.save_every is None else args.save_every
+    if save_every < 1:
+        raise InputError("--save-every", f"must be >= 1, got {save_every}", "give a positive stride")
+    if steps < 1:
+        raise InputError("--steps", f"must be >= 1, got {steps}", "give a positive number of steps")
+    if steps % save_every:
+        raise InputError("--steps", f"{steps} is not a multiple of --save-every {save_every}", "make it one")
+    return scene, steps, save_every
+
+
+def check_out_folder(path: Path):
+    from ..errors import InputError
+
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError("--out", f"folder {str(folder)!r} does not exist", "create it or choose another path")
+
+
+def simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
+    from ..errors import BlowUpError
+    from ..io.trajectory import save_trajectory
+    from ..sim.run import run_scene
+    from ..sim.stability import estimate_stability
+
+    stability = estimate_stability(scene.model, scene.params, scene.state)
+    if stability.margin < 1:
+        print(f"jaxspring: warning: {instability_advice(scene, stability)}", file=sys.stderr, flush=True)
+    result = run_scene(scene, steps, save_every, show_progress=not quiet, stability=stability)
+    if result.blowup is not None:
+        raise BlowUpError(f"{scene.name}: {result.blowup.describe()}; no file was written")
+    save_trajectory(out, scene, result.trajectory)
+    return result
+
+
+def instability_advice(scene, stability) -> str:
+    stable = [n for n, b in stability.bounds.items() if b >= scene.model.dt]
+    return (
+        f"{scene.name}: dt {scene.model.dt:g} s exceeds {stability.integrator}'s stable-dt estimate "
+        f"{stability.dt_bound:.3g} s; expect a blow-up (stable at this dt: {', '.join(stable)})"
+    )
+
+
+def summary(scene, result, out) -> str:
+    return (
+        f"{scene.name}: {result.steps} steps of {scene.model.dt:g} s in {result.wall_s:.3f} s "
+        f"({result.steps_per_second:,.0f} steps/s; compile {result.compile_s:.2f} s); "
+        f"energy {result.energy_start:.6g} J -> {result.energy_end:.6g} J; wrote {out}"
+    )
+
+
+def render_with_progress(scene, trajectory, out, frame, max_frames, quiet, label):
+    from tqdm.auto import tqdm
+
+    from ..render import render
+
+    with tqdm(
+        total=0, desc=label, unit="frame", file=sys.stderr, disable=quiet or not sys.stderr.isatty(), leave=False
+    ) as bar:
+
+        def progress(done, total):
+            bar.total = total
+            bar.n = done + 1
+            bar.refresh()
+
+        render(scene, trajectory, out, frame=frame, max_frames=max_frames, progress=progress)

@@ -1,0 +1,178 @@
+"""`jaxspring fit`: fit parameters to a target."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..steppers import BACKENDS
+from .common import BACKEND_HELP, check_out_folder, parse_sets
+
+
+def add_parser(sub):
+    parser = sub.add_parser("fit", help="fit physical parameters to a recorded or synthetic trajectory")
+    parser.add_argument("experiment", nargs="?", help="experiment TOML file (optional with --target)")
+    parser.add_argument("--target", help="trajectory file to fit (default: the experiment's target)")
+    parser.add_argument("--params", help="comma-separated parameters to fit, e.g. ks,kd,cd")
+    parser.add_argument("--init", help="start values, e.g. ks=400,kd=2")
+    parser.add_argument("--out", help="fit file (default: NAME.fit.h5); a loss/parameter plot goes beside it (.png)")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted fit from --out")
+    parser.add_argument(
+        "--optimizer", choices=["lbfgs", "adam"], help="optimizer (default: the experiment's, else lbfgs)"
+    )
+    parser.add_argument(
+        "--strategy", choices=["auto", "direct", "curriculum", "shooting"], help="long-horizon strategy"
+    )
+    parser.add_argument(
+        "--ensemble",
+        choices=["auto", "gradient", "ensemble"],
+        help="full-horizon stage: gradient optimiser or smoothed ensemble Gauss-Newton (auto: ensemble with contact)",
+    )
+    parser.add_argument("--iterations", type=int, help="most iterations per stage")
+    parser.add_argument("--backend", choices=BACKENDS, help=BACKEND_HELP)
+    parser.add_argument("--noise", type=float, help="relative observation noise of a synthetic target")
+    parser.add_argument("--checkpoint-every", type=int, default=5, help="iterations between checkpoints (default 5)")
+    parser.add_argument(
+        "--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _parse_values(text) -> dict:
+    """ "ks=400,kd=2" -> {"ks": 400.0, "kd": 2.0}."""
+    return parse_sets([item for item in (text or "").split(",") if item.strip()])
+
+
+def _fit_problem(args):
+    """(experiment, observations, names, init, settings, config) from the command line."""
+    import dataclasses
+
+    from ..errors import InputError
+    from ..fit.settings import FitSettings
+    from ..io.experiment import Experiment, load_experiment, observations_from_file
+    from ..io.trajectory import load_trajectory
+
+    if args.experiment:
+        experiment = load_experiment(args.experiment)
+    elif args.target:
+        recorded, _ = load_trajectory(args.target)
+        experiment = Experiment(name=Path(args.target).stem, scene=recorded, params=(), init={}, settings=FitSettings())
+    else:
+        raise InputError("fit", "nothing to fit", "give an EXPERIMENT.toml or --target FILE.h5")
+    if args.backend:
+        experiment = experiment.replace(scene=experiment.scene.with_backend(args.backend))
+    if args.params:
+        experiment = experiment.replace(params=tuple(p.strip() for p in args.params.split(",") if p.strip()))
+    if not experiment.params:
+        raise InputError("--params", "no parameters named", "give e.g. --params ks,kd,cd")
+    init = {k: v for k, v in experiment.init.items() if k in experiment.params}  # --params may narrow the fit
+    init.update(_parse_values(args.init))
+    changes = {
+        k: getattr(args, k) for k in ("optimizer", "strategy", "ensemble", "iterations") if getattr(args, k) is not None
+    }
+    settings = dataclasses.replace(experiment.settings, **changes).validate()
+    if args.noise is not None:
+        if args.noise < 0:
+            raise InputError("--noise", "must be >= 0", "give a relative noise level such as 0.01")
+        experiment = experiment.replace(noise=args.noise)
+    if args.target:
+        observations = observations_from_file(experiment.scene, args.target)
+    else:
+        observations = experiment.observations()
+    config = {
+        "experiment": str(args.experiment) if args.experiment else None,
+        "target": str(args.target or experiment.target_file or "synthetic"),
+        "params": list(experiment.params),
+        "init": {k: np.asarray(v).tolist() for k, v in sorted(init.items())},
+        **{f"settings.{k}": v for k, v in dataclasses.asdict(settings).items()},
+        "noise": experiment.noise,
+        "steps": experiment.steps,
+        "save_every": experiment.save_every,
+        "seed": experiment.seed,
+        "dtype": args.dtype,
+        "backend": experiment.scene.model.backend,
+    }
+    return experiment, observations, experiment.params, init, settings, config
+
+
+def command(args):
+    import copy
+    import signal
+
+    from tqdm.auto import tqdm
+
+    from ..errors import InputError
+    from ..fit.loop import fit_batch
+    from ..io.fit_file import load_fit_progress, save_fit
+    from ..render import plot_fit
+
+    if args.checkpoint_every < 1:
+        raise InputError("--checkpoint-every", "must be >= 1", "give a positive number of iterations")
+    experiment, observations, names, init, settings, config = _fit_problem(args)
+    scene = experiment.scene
+    default = Path(args.experiment).stem if args.experiment else Path(args.target).stem
+    out = Path(args.out or f"{default}.fit.h5")
+    check_out_folder(out)
+    progress = load_fit_progress(out, config, names) if args.resume else None
+    present = scene.params.to_dict()
+    initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
+    latest = [None]
+    bar = tqdm(
+        total=settings.iterations,
+        desc=f"fit {experiment.name}",
+        unit="it",
+        file=sys.stderr,
+        disable=args.quiet or not sys.stderr.isatty(),
+        leave=False,
+    )
+
+    # SIGINT/SIGTERM stop the fit at the next iteration (a flag, so no library code in
+    # between can swallow the interrupt); a second signal stops it at once.
+    interrupted = []
+
+    def on_iteration(current, stages):
+        snapshot = copy.copy(current)
+        snapshot.loss, snapshot.stage_of_iteration = list(current.loss), list(current.stage_of_iteration)
+        snapshot.values = {n: list(v) for n, v in current.values.items()}
+        latest[0] = snapshot
+        if interrupted:  # saved (with this iteration) by the handler below
+            raise KeyboardInterrupt
+        if current.loss:
+            values = " ".join(f"{n}={float(np.mean(np.exp(np.asarray(current.theta[n])))):.5g}" for n in names)
+            bar.set_description(f"fit {experiment.name} stage {min(current.stage, len(stages) - 1) + 1}/{len(stages)}")
+            bar.set_postfix_str(f"loss={float(np.asarray(current.loss[-1])[0]):.3e} {values}", refresh=False)
+            bar.n = current.iteration
+            bar.refresh()
+        if current.done or current.iteration == 0 or len(current.loss) % args.checkpoint_every == 0:
+            save_fit(out, config, names, initial, snapshot)
+
+    def terminate(signum, frame):
+        if interrupted:
+            raise KeyboardInterrupt
+        interrupted.append(signum)
+
+    previous = {sig: signal.signal(sig, terminate) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with bar:
+            result = fit_batch(
+                scene, [observations], names, [init], settings, progress=progress, on_iteration=on_iteration
+            )[0]
+        final = latest[0] or progress
+        save_fit(out, config, names, initial, final, result)
+    except KeyboardInterrupt:
+        if latest[0] is not None:
+            save_fit(out, config, names, initial, latest[0])
+            done = len(latest[0].loss)
+            print(
+                f"jaxspring: interrupted after {done} iterations; saved to {out}; continue with --resume",
+                file=sys.stderr,
+            )
+        return 130
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    plot = plot_fit(result, out.with_suffix(".png"))
+    print(result.table())
+    print(f"wrote {out} and {plot}")

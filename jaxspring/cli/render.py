@@ -1,0 +1,26 @@
+"""`jaxspring render`: pictures and movies of a trajectory file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .common import check_out_folder, render_with_progress
+
+
+def add_parser(sub):
+    parser = sub.add_parser("render", help="draw a trajectory file to a PNG frame or a GIF movie")
+    parser.add_argument("file", help="trajectory file written by `jaxspring run`")
+    parser.add_argument("--out", help="output .png or .gif (default: FILE with .gif)")
+    parser.add_argument("--frame", type=int, default=-1, help="frame a PNG shows (default: last)")
+    parser.add_argument("--max-frames", type=int, default=60, help="frames in a GIF (default: 60)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def command(args):
+    from ..io.trajectory import load_trajectory
+
+    scene, trajectory = load_trajectory(args.file)
+    out = Path(args.out) if args.out else Path(args.file).with_suffix(".gif")
+    check_out_folder(out)
+    render_with_progress(scene, trajectory, out, args.frame, args.max_frames, args.quiet, f"render {out.name}")
+    print(f"wrote {out}")

@@ -1,0 +1,180 @@
+"""Gauss-Newton polish and the identifiability report (standard errors, correlations, warnings)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..sim.scene import Scene
+from .objective import residual_function
+from .observations import Observations
+
+
+@dataclasses.dataclass(frozen=True)
+class Identifiability:
+    """Gauss-Newton uncertainty at the optimum.
+
+    Attributes:
+        standard_error: name -> standard error of the parameter (same units).
+        relative_standard_error: name -> standard error / value.
+        correlation: (P, P) correlation matrix of the (log) parameters, in `names` order.
+        names: parameter names of the correlation matrix's rows.
+        noise_std: residual standard deviation [m] used for the estimate.
+        warnings: plain-language warnings (not identifiable, poorly determined, confounded).
+    """
+
+    standard_error: dict
+    relative_standard_error: dict
+    correlation: np.ndarray
+    names: tuple
+    noise_std: float
+    warnings: tuple
+
+
+class _PolishSteps(list):
+    """(loss, values) before each accepted Gauss-Newton step, plus the final values and loss."""
+
+    final: dict
+    final_loss: float
+def gauss_newton_polish(scene, observations, names, values, settings, max_parameters: int = 64):
+    """Levenberg-Marquardt on the full-horizon residuals, from the first-order optimiser's answer.
+
+    Least squares with few parameters is what Gauss-Newton is for: it is invariant to the
+    parameters' scales, so it finishes a flat, badly scaled valley (the jelly's damping
+    against its stiffness) where a first-order method crawls.
+    """
+    flat, unravel, residuals = residual_function(scene, observations, names, values)
+    if flat.shape[0] > max_parameters:
+        return []
+    residuals = jax.jit(residuals)
+    jacobian = jax.jit(jax.jacfwd(residuals))
+    flat = np.asarray(flat)
+    r = np.asarray(residuals(flat))
+    cost = float(r @ r)
+    steps = _PolishSteps()
+    damping = 1e-3
+    to_values = lambda v: {n: np.asarray(jnp.exp(x)) for n, x in unravel(jnp.asarray(v)).items()}  # noqa: E731
+    for _ in range(settings.polish_iterations):
+        jac = np.asarray(jacobian(flat))
+        gradient, normal = jac.T @ r, jac.T @ jac
+        scale = np.maximum(np.diag(normal), 1e-300)
+        accepted = False
+        for _ in range(12):
+            step = -np.linalg.pinv(normal + damping * np.diag(scale), rcond=1e-14) @ gradient
+            candidate = flat + step
+            r_new = np.asarray(residuals(candidate))
+            cost_new = float(r_new @ r_new)
+            if np.isfinite(cost_new) and cost_new < cost:
+                accepted = True
+                break
+            damping *= 10.0
+        if not accepted:
+            break
+        steps.append((cost / r.size, to_values(flat)))
+        improvement = (cost - cost_new) / cost
+        flat, r, cost = candidate, r_new, cost_new
+        damping = max(damping / 10.0, 1e-12)
+        if np.max(np.abs(step)) <= settings.step_tolerance or improvement <= settings.tolerance**2:
+            break
+    steps.final = to_values(flat)
+    steps.final_loss = cost / r.size
+    return steps
+def identifiability(scene: Scene, observations: Observations, names, values: dict, max_parameters: int = 64):
+    """Gauss-Newton standard errors and correlations of `values` for the full-horizon fit.
+
+    With residuals r (observed minus simulated positions) and J = dr/d(log p), the
+    covariance of log p is s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - P); a parameter's
+    standard error is its value times its log standard error. Warns when the data do
+    not depend on a parameter, when it is poorly determined (relative standard error
+    above 50%), when two parameters are confounded (|correlation| > 0.95), and when the
+    loss one standard error away disagrees with the quadratic model (a rough loss).
+
+    Example:
+        >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
+    """
+    names = tuple(names)
+    flat, unravel, residuals = residual_function(scene, observations, names, values)
+    theta = unravel(flat)
+    if flat.shape[0] > max_parameters:
+        return None
+    r = np.asarray(residuals(flat))
+    jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
+    count, dims = r.shape[0], flat.shape[0]
+    sigma2 = float(r @ r) / max(count - dims, 1)
+    labels = _labels(theta)
+    warnings = []
+    column = np.linalg.norm(jac, axis=0)
+    dead = column <= 1e-10 * max(float(column.max()), 1e-300)
+    for i in np.nonzero(dead)[0]:
+        warnings.append(f"{labels[i]} is not identifiable: the observed motion does not depend on it")
+    # invert on unit-norm columns (so a parameter with a tiny effect is not cut off by a
+    # round-off threshold), then undo the scaling; directions the data cannot see get
+    # infinite variance rather than zero
+    scale = np.where(dead, 1.0, column)
+    scaled = jac / scale
+    eigenvalues, eigenvectors = np.linalg.eigh(scaled.T @ scaled)
+    visible = eigenvalues > 1e-13 * max(float(eigenvalues.max()), 1e-300)
+    inverse = (eigenvectors[:, visible] / eigenvalues[visible]) @ eigenvectors[:, visible].T
+    covariance = sigma2 * inverse / np.outer(scale, scale)
+    log_se = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    blind = np.abs(eigenvectors[:, ~visible]).max(axis=1) > 1e-3 if (~visible).any() else np.zeros(dims, bool)
+    log_se[dead | blind] = np.inf
+    with np.errstate(invalid="ignore", divide="ignore"):
+        correlation = covariance / np.outer(log_se, log_se)
+    correlation[~np.isfinite(correlation)] = 0.0
+    np.fill_diagonal(correlation, 1.0)
+    se_tree = unravel(jnp.asarray(log_se))
+    standard_error = {n: np.asarray(values[n]) * np.asarray(se_tree[n]) for n in names}
+    relative = {n: np.asarray(se_tree[n]) for n in names}  # d(log p) = dp / p
+    for i, label in enumerate(labels):
+        if not dead[i] and log_se[i] > 0.5:
+            warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
+    warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
+    for i in range(dims):
+        for j in range(i + 1, dims):
+            if abs(correlation[i, j]) > 0.95 and not (dead[i] or dead[j]):
+                warnings.append(
+                    f"{labels[i]} and {labels[j]} are confounded (correlation {correlation[i, j]:+.3f}): "
+                    "the data constrain a combination of them, not each"
+                )
+    return Identifiability(standard_error, relative, correlation, tuple(labels), math.sqrt(sigma2), tuple(warnings))
+def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:
+    """Check the Gauss-Newton quadratic model one standard error either side of the point.
+
+    Moving log p_i by d = +-s_i changes the sum of squares, to second order, by
+    2 (J^T r)_i d + (d |J_i|)^2. When the actual change misses that by more than half the
+    curvature term, the loss is not smooth there (contact switching on at discrete steps
+    does this): the standard errors are then not to be trusted and the fit may sit in a
+    local dip.
+    """
+    warnings = []
+    cost = float(r @ r)
+    slope = jac.T @ r
+    for i, label in enumerate(labels):
+        if not (1e-6 < log_se[i] < 1.0):  # determined to round-off, or already flagged as poorly determined
+            continue
+        curvature = float((log_se[i] * np.linalg.norm(jac[:, i])) ** 2)
+        for sign in (1.0, -1.0):
+            step = sign * log_se[i]
+            moved = np.array(flat, dtype=float)
+            moved[i] += step
+            change = float(np.sum(np.asarray(residuals(jnp.asarray(moved))) ** 2)) - cost
+            predicted = 2.0 * float(slope[i]) * step + curvature
+            if abs(change - predicted) > 0.5 * curvature:
+                warnings.append(
+                    f"{label}: the loss is not smooth near the fit (one standard error away it changes by "
+                    f"{change / curvature:.2g} where the quadratic model predicts {predicted / curvature:.2g}, "
+                    "in units of the curvature term); its standard error is unreliable and a gradient fit may stop in a local dip"
+                )
+                break
+    return warnings
+def _labels(theta: dict) -> list[str]:
+    labels = []
+    for name, value in sorted(theta.items()):
+        size = int(np.size(value))
+        labels += [name] if np.ndim(value) == 0 else [f"{name}[{i}]" for i in range(size)]
+    return labels

@@ -1,0 +1,232 @@
+"""The fit loop: optimiser stages over a batch of starts and targets, convergence, results."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ..errors import InputError
+from ..sim.scene import Scene
+from ..sim.sharding import shard_batch
+from .ensemble import ensemble_step_function
+from .identifiability import gauss_newton_polish, identifiability
+from .objective import check_names, loss_function, target_data
+from .observations import Observations
+from .results import FitProgress, FitResult
+from .settings import FitSettings, Stage, plan_stages
+
+
+def _optimizer(settings: FitSettings):
+    if settings.optimizer == "lbfgs":
+        return optax.lbfgs()
+    return optax.chain(optax.clip_by_global_norm(settings.clip), optax.adam(settings.learning_rate))
+def step_function(loss, settings: FitSettings, data_batched: bool):
+    optimizer = _optimizer(settings)
+
+    def single(theta, opt_state, data):
+        value_fn = lambda th: loss(th, data)  # noqa: E731
+        if settings.optimizer == "lbfgs":
+            value, grad = optax.value_and_grad_from_state(value_fn)(theta, state=opt_state)
+            updates, opt_state = optimizer.update(grad, opt_state, theta, value=value, grad=grad, value_fn=value_fn)
+        else:
+            value, grad = jax.value_and_grad(value_fn)(theta)
+            updates, opt_state = optimizer.update(grad, opt_state, theta)
+        return optax.apply_updates(theta, updates), opt_state, value
+
+    step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if data_batched else None)))
+    init = jax.jit(jax.vmap(optimizer.init))
+    value = jax.jit(jax.vmap(loss, in_axes=(0, 0 if data_batched else None)))
+    return step, init, value
+def fit(
+    scene: Scene,
+    observations: Observations,
+    params=("ks", "kd"),
+    init: dict | None = None,
+    settings: FitSettings | None = None,
+    **kwargs,
+) -> FitResult:
+    """Fit `params` of `scene` to `observations` by gradient-based optimisation through rollouts.
+
+    Args:
+        scene: the model and its other parameters (held fixed).
+        observations: the target (see `observations_from_trajectory`, `synthetic_observations`).
+        params: names to fit, e.g. ("ks", "kd", "cd").
+        init: start values (name -> positive value); default: the scene's values.
+        settings: a FitSettings; keyword arguments override its fields.
+    Returns:
+        FitResult with the fitted values, histories and the identifiability report.
+
+    Example:
+        >>> obs = js.synthetic_observations(scene, {"ks": 1000.0, "kd": 5.0, "cd": 0.05}, 1000, 10)
+        >>> result = js.fit(scene, obs, ["ks", "kd", "cd"], init={"ks": 400.0, "kd": 12.0, "cd": 0.15})
+        >>> print(result.table())
+    """
+    return fit_batch(scene, [observations], params, [init or {}], settings, **kwargs)[0]
+def fit_batch(
+    scene: Scene,
+    observations: list[Observations],
+    params=("ks", "kd"),
+    inits: list[dict] | None = None,
+    settings: FitSettings | None = None,
+    progress: FitProgress | None = None,
+    on_iteration: Callable[[FitProgress, list[Stage]], None] | None = None,
+    identify: bool = True,
+    **kwargs,
+) -> list[FitResult]:
+    """Fit several starting guesses (multi-start) and/or several targets at once with `vmap`.
+
+    `observations` holds one target (shared by all members) or one per member;
+    `inits` one start per member (default: one member starting at the scene's values).
+    `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
+    after every iteration (the CLI checkpoints from it). With several devices and a
+    member count divisible by their number, the members are split across them
+    (`shard_batch`); the numbers are the same as on one device.
+
+    Example:
+        >>> results = js.fit_batch(scene, [obs], ["ks", "kd"], inits=[{"ks": 300.0}, {"ks": 3000.0}])
+        >>> [r.final["ks"] for r in results]
+    """
+    settings = dataclasses.replace(settings or FitSettings(), **kwargs).validate()
+    inits = list(inits) if inits else [{}]
+    if len(observations) not in (1, len(inits)):
+        if len(inits) == 1:
+            inits = inits * len(observations)
+        else:
+            raise InputError(
+                "observations",
+                f"{len(observations)} targets for {len(inits)} starts",
+                "give one target or one per start",
+            )
+    names = tuple(params)
+    for init in inits:
+        check_names(scene, names, init)
+    members = len(inits)
+    shapes = [o.x.shape for o in observations]
+    if len(set(shapes)) != 1:
+        raise InputError(
+            "observations", f"targets differ in shape {shapes}", "give targets of equal length and particles"
+        )
+    reference = observations[0]
+    batched_data = len(observations) > 1
+    if batched_data:
+        data = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[target_data(o) for o in observations])
+    else:
+        data = target_data(reference)
+    present = scene.params.to_dict()
+    stages = plan_stages(reference, settings, scene, values=sum(int(np.size(present[n])) for n in names))
+    start_values = [{n: jnp.asarray(init.get(n, present[n]), dtype=float) for n in names} for init in inits]
+    if progress is None:
+        theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], present[n].shape)) for s in start_values]) for n in names}
+        progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
+    if jax.device_count() > 1 and members % jax.device_count() == 0:  # members across devices
+        progress.theta = shard_batch(progress.theta)
+        if batched_data:
+            data = shard_batch(data)
+    start_clock = time.perf_counter() - progress.wall_s
+    while not progress.done:
+        stage = stages[progress.stage]
+        if stage.kind == "ensemble":
+            step, init_opt = ensemble_step_function(
+                scene, reference, names, stage, settings, batched_data, progress.theta
+            )
+        else:
+            step, init_opt, _ = step_function(loss_function(scene, reference, names, stage), settings, batched_data)
+        opt_state = init_opt(progress.theta)
+        if progress.optimizer_leaves is not None:
+            structure = jax.tree_util.tree_structure(opt_state)
+            opt_state = jax.tree_util.tree_unflatten(structure, [jnp.asarray(a) for a in progress.optimizer_leaves])
+        final_stage = progress.stage == len(stages) - 1
+        while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage, opt_state):
+            values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
+            theta, opt_state, value = step(progress.theta, opt_state, data)
+            progress.last_step = np.max(
+                np.stack(
+                    [np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]
+                ),
+                axis=0,
+            )
+            progress.theta = theta
+            progress.loss.append(np.asarray(value))
+            for n in names:
+                progress.values[n].append(values[n])
+            progress.stage_of_iteration.append(progress.stage)
+            progress.iteration += 1
+            progress.optimizer_leaves = [np.asarray(a) for a in jax.tree_util.tree_leaves(opt_state)]
+            progress.wall_s = time.perf_counter() - start_clock
+            if on_iteration:
+                on_iteration(progress, stages)
+        progress.stage += 1
+        progress.iteration = 0
+        progress.optimizer_leaves = None
+        progress.last_step = None
+        progress.done = progress.stage >= len(stages)
+        progress.wall_s = time.perf_counter() - start_clock
+        if on_iteration:
+            on_iteration(progress, stages)
+    return _results(scene, observations, names, start_values, settings, stages, progress, data, identify)
+def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state) -> bool:
+    """Whether every member has converged in the current stage (see FitSettings)."""
+    if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage says so itself
+        return bool(np.all(np.asarray(opt_state["done"]) > 0))
+    if progress.last_step is not None:
+        limit = settings.step_tolerance if final_stage else settings.warmup_step_tolerance
+        if np.all(progress.last_step <= limit):
+            return True
+    in_stage = [loss for loss, s in zip(progress.loss, progress.stage_of_iteration) if s == progress.stage]
+    if len(in_stage) < 2:
+        return False
+    first, now = np.asarray(in_stage[0]), np.asarray(in_stage[-1])
+    if np.all(now <= settings.tolerance**2 * first):
+        return True
+    if len(in_stage) < 6 or settings.optimizer != "lbfgs":  # Adam's loss is not monotone
+        return False
+    before = np.asarray(in_stage[-6])
+    return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))
+def _results(scene, observations, names, start_values, settings, stages, progress, data, identify):
+    batched_data = len(observations) > 1
+    loss = loss_function(scene, observations[0], names, stages[-1])
+    _, _, value = step_function(loss, settings, batched_data)
+    final_loss = np.asarray(value(progress.theta, data))
+    results = []
+    polish_stage = Stage("gauss_newton", observations[0].frame_count - 1)
+    for member, start in enumerate(start_values):
+        obs = observations[member if batched_data else 0]
+        final = {n: np.asarray(jnp.exp(progress.theta[n][member])) for n in names}
+        history = [np.asarray(loss)[member] for loss in progress.loss]
+        value_history = {n: [v[member] for v in progress.values[n]] for n in names}
+        stage_of_iteration = list(progress.stage_of_iteration)
+        polish_start = time.perf_counter()
+        steps = gauss_newton_polish(scene, obs, names, final, settings) if settings.polish else []
+        for loss_before, values_before in steps:
+            history.append(loss_before)
+            for n in names:
+                value_history[n].append(values_before[n])
+            stage_of_iteration.append(len(stages))
+        if steps:
+            final = steps.final
+            final_loss_member = steps.final_loss
+        else:
+            final_loss_member = final_loss[member]
+        ident = identifiability(scene, obs, names, final) if identify else None
+        results.append(
+            FitResult(
+                names=names,
+                initial={n: np.asarray(start[n]) for n in names},
+                final=final,
+                loss_history=np.array(history + [final_loss_member]),
+                value_history={n: np.array(value_history[n] + [final[n]]) for n in names},
+                stages=tuple(stages) + ((polish_stage,) if steps else ()),
+                stage_of_iteration=np.asarray(stage_of_iteration, dtype=int),
+                iterations=len(history),
+                wall_s=progress.wall_s + time.perf_counter() - polish_start,
+                identifiability=ident,
+                truth={n: obs.truth[n] for n in names if n in obs.truth} if obs.truth else None,
+            )
+        )
+    return results

@@ -1,0 +1,104 @@
+"""What a fit minimises: the misfit of simulated to observed positions, per stage."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ..errors import InputError
+from ..sim.rollout import rollout
+from ..sim.scene import Scene
+from ..sim.state import State
+from .observations import Observations
+from .settings import FITTABLE, Stage
+
+
+def check_names(scene: Scene, names, init: dict | None):
+    names = tuple(names)
+    if not names:
+        raise InputError("params", "nothing to fit", "name at least one parameter, e.g. ks")
+    present = scene.params.to_dict()
+    for name in names:
+        if name not in FITTABLE:
+            raise InputError("params", f"{name!r} cannot be fitted", f"fit some of {', '.join(FITTABLE)}")
+        if name not in present:
+            raise InputError(
+                "params",
+                f"the scene has no parameter {name!r} (its terms are {', '.join(scene.model.terms)})",
+                f"fit some of {', '.join(n for n in present if n in FITTABLE)}",
+            )
+    for name, value in (init or {}).items():
+        if name not in names:
+            raise InputError(
+                "init", f"{name!r} is given a start value but is not fitted", "add it to the fitted params"
+            )
+        value = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(value)) or np.any(value <= 0):
+            raise InputError(
+                f"init.{name}", f"must be > 0 (fitted in log space), got {value}", "give a positive start value"
+            )
+    return names
+def misfit_function(scene: Scene, observations: Observations, names, frames: int):
+    """misfit(theta, data): simulated minus observed positions over the first `frames` frames, (frames, M, 3).
+
+    theta maps name -> log value; data holds the target and its initial state.
+    """
+    model, base = scene.model, scene.params
+    particles = jnp.asarray(observations.particles)
+    every = observations.save_every
+
+    def misfit(theta, data):
+        params = base.replace(**{n: jnp.exp(theta[n]) for n in names})
+        start = State(x=data["x0"], v=data["v0"])
+        x = rollout(model, params, start, steps=frames * every, save_every=every).x
+        return x[1:, particles] - data["x"][1 : frames + 1]
+
+    return misfit
+def loss_function(scene: Scene, observations: Observations, names, stage: Stage):
+    """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
+    model, base = scene.model, scene.params
+    particles = jnp.asarray(observations.particles)
+    every = observations.save_every
+
+    def params_of(theta):
+        return base.replace(**{n: jnp.exp(theta[n]) for n in names})
+
+    if stage.kind in ("direct", "ensemble"):
+        misfit = misfit_function(scene, observations, names, stage.frames)
+        return lambda theta, data: jnp.mean(misfit(theta, data) ** 2)
+    segment = stage.frames
+
+    def loss(theta, data):
+        params = params_of(theta)
+        count = (data["x"].shape[0] - 1) // segment
+        starts = State(
+            x=data["states_x"][0 : count * segment : segment], v=data["states_v"][0 : count * segment : segment]
+        )
+        target = data["x"][1 : count * segment + 1].reshape((count, segment) + data["x"].shape[1:])
+        run = lambda s: rollout(model, params, s, steps=segment * every, save_every=every).x[1:]  # noqa: E731
+        return jnp.mean((jax.vmap(run)(starts)[:, :, particles] - target) ** 2)
+
+    return loss
+def target_data(observations: Observations) -> dict:
+    data = {"x": jnp.asarray(observations.x), "x0": observations.initial_state.x, "v0": observations.initial_state.v}
+    if observations.states is not None:
+        data["states_x"] = jnp.asarray(observations.states.x)
+        data["states_v"] = jnp.asarray(observations.states.v)
+    return data
+def residual_function(scene: Scene, observations: Observations, names, values: dict):
+    """(flat log parameters, unravel, residuals(flat) -> (n,)) for the full horizon."""
+    theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
+    flat, unravel = ravel_pytree(theta)
+    base, model = scene.params, scene.model.forward_mode()  # Jacobians are taken with jacfwd
+    particles = jnp.asarray(observations.particles)
+    every, frames = observations.save_every, observations.frame_count - 1
+    target = jnp.asarray(observations.x)
+
+    def residuals(vector):
+        p = base.replace(**{n: jnp.exp(v) for n, v in unravel(vector).items()})
+        x = rollout(model, p, observations.initial_state, steps=frames * every, save_every=every).x
+        return (x[1:, particles] - target[1:]).reshape(-1)
+
+    return flat, unravel, residuals

@@ -1,0 +1,100 @@
+"""What a fit returns and keeps while it runs: progress, result, identifiability report."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .identifiability import Identifiability
+
+
+@dataclasses.dataclass
+class FitProgress:
+    """Everything needed to continue a fit exactly where it stopped (saved in fit files).
+
+    Attributes:
+        stage: index of the current stage.
+        iteration: iterations done in the current stage.
+        theta: log parameter values, name -> (B, ...).
+        optimizer_leaves: the optimizer state's arrays (its structure is rebuilt from the settings).
+        loss: loss before each completed iteration, list of (B,) arrays.
+        values: parameter values before each completed iteration, name -> list of (B, ...) arrays.
+        stage_of_iteration: stage index of each completed iteration.
+        last_step: largest log-parameter change of the last iteration, per member (B,).
+        done: whether the fit finished.
+        wall_s: time spent so far [s].
+    """
+
+    stage: int
+    iteration: int
+    theta: dict
+    optimizer_leaves: list | None
+    loss: list
+    values: dict
+    stage_of_iteration: list
+    last_step: np.ndarray | None = None
+    done: bool = False
+    wall_s: float = 0.0
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """The outcome of a fit (one member; `fit_batch` returns a list of these).
+
+    Attributes:
+        names: fitted parameter names.
+        initial, final: name -> value at the start and at the end.
+        loss_history: loss [m^2] before each iteration, then the final loss, shape (iterations + 1,).
+        value_history: name -> value before each iteration, then the final value.
+        stages: the stages run; stage_of_iteration says which stage each iteration belongs to.
+        iterations: iterations run in all.
+        wall_s: wall time [s].
+        identifiability: Gauss-Newton standard errors and correlations (None if skipped).
+        truth: true values when known (synthetic targets).
+    """
+
+    names: tuple
+    initial: dict
+    final: dict
+    loss_history: np.ndarray
+    value_history: dict
+    stages: tuple
+    stage_of_iteration: np.ndarray
+    iterations: int
+    wall_s: float
+    identifiability: Identifiability | None
+    truth: dict | None = None
+
+    @property
+    def final_loss(self) -> float:
+        return float(self.loss_history[-1])
+
+    def relative_errors(self) -> dict:
+        """name -> |final - true| / |true| (max over items for per-item parameters), when the truth is known."""
+        if not self.truth:
+            return {}
+        return {
+            n: float(np.max(np.abs(np.asarray(self.final[n]) - self.truth[n]) / np.abs(self.truth[n])))
+            for n in self.names
+            if n in self.truth
+        }
+
+    def table(self) -> str:
+        """A plain-text table: fitted value, true value, relative error, standard error."""
+        ident = self.identifiability
+        rows = [f"{'param':<7}{'initial':>12}{'fitted':>14}{'true':>12}{'rel. error':>12}{'std. error':>12}"]
+        errors = self.relative_errors()
+        for n in self.names:
+            value = np.asarray(self.final[n])
+            true = "" if not self.truth or n not in self.truth else _short(self.truth[n])
+            rel = f"{errors[n]:.2e}" if n in errors else ""
+            se = _short(ident.standard_error[n]) if ident else ""
+            rows.append(f"{n:<7}{_short(self.initial[n]):>12}{_short(value):>14}{true:>12}{rel:>12}{se:>12}")
+        rows.append(f"final loss {self.final_loss:.4g} m^2 after {self.iterations} iterations in {self.wall_s:.2f} s")
+        if ident:
+            rows += [f"warning: {w}" for w in ident.warnings]
+        return "\n".join(rows)
+def _short(value) -> str:
+    value = np.asarray(value)
+    if value.ndim == 0:
+        return f"{float(value):.6g}"
+    return f"mean {float(value.mean()):.4g}"

@@ -1,0 +1,152 @@
+"""Fit settings and the plan of stages a fit runs (direct, curriculum, shooting, ensemble)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..errors import InputError
+from ..sim.params import NON_NEGATIVE
+from ..sim.scene import Scene
+from .observations import Observations
+
+FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
+OPTIMIZERS = ("lbfgs", "adam")
+STRATEGIES = ("auto", "direct", "curriculum", "shooting")
+ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
+ENSEMBLE_MAX_PARAMETERS = 8  # scalar values; a Gaussian cloud needs several rollouts per dimension
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    """How to fit.
+
+    Attributes:
+        optimizer: "lbfgs" (default: fewest iterations on the seed scenes) or "adam".
+        iterations: most iterations per stage.
+        learning_rate: Adam's step in log-parameter space.
+        clip: Adam's gradient clipping (global norm).
+        strategy: "direct" (whole horizon at once), "curriculum" (horizons 1/8, 1/4,
+            1/2, 1 of the target), "shooting" (segments of `segment_frames` frames from
+            recorded states, then the whole horizon), or "auto": direct up to
+            `long_horizon_steps` steps without ground contact; beyond that, or when the
+            target touches the ground, shooting when full states were recorded, else
+            curriculum.
+        segment_frames: frames per multiple-shooting segment.
+        long_horizon_steps: targets longer than this count as long.
+        tolerance: a stage stops when the loss falls below `tolerance**2` times its first value
+            (converged to round-off) or, with L-BFGS, improves by less than this fraction over 5 iterations.
+        step_tolerance: the last stage stops when no log-parameter moved by more than this in an iteration.
+        warmup_step_tolerance: the same for the earlier (curriculum or shooting) stages, which only
+            need to bring the parameters close.
+        polish: finish with Levenberg-Marquardt (Gauss-Newton) steps on the whole horizon
+            (at most `polish_iterations`; up to 64 parameter values). Scale-invariant, it
+            finishes smooth, badly scaled valleys quickly; off by default because on
+            contact-rough losses (the noisy jelly) it does not help.
+        ensemble: how the full-horizon stage runs. "gradient": the optimiser on the loss.
+            "ensemble": Gauss-Newton on the loss smoothed over a Gaussian cloud of parameter
+            values (`ensemble_members` rollouts a step, no gradients), the cloud shrinking to
+            the parameters' standard errors; it steps over the small dips that contact cuts
+            into the loss, where a gradient method stops. "auto" (default): "ensemble" when
+            the target touches the ground and at most `ENSEMBLE_MAX_PARAMETERS` values are
+            fitted, else "gradient".
+        ensemble_members: rollouts per ensemble step (even; at least 4 per fitted value).
+        ensemble_spread: the cloud's initial standard deviation in log-parameter space.
+    """
+
+    optimizer: str = "lbfgs"
+    iterations: int = 100
+    learning_rate: float = 0.05
+    clip: float = 1.0
+    strategy: str = "auto"
+    segment_frames: int = 10
+    long_horizon_steps: int = 2000
+    tolerance: float = 1e-9
+    step_tolerance: float = 1e-9
+    warmup_step_tolerance: float = 1e-6
+    polish: bool = False
+    polish_iterations: int = 20
+    ensemble: str = "auto"
+    ensemble_members: int = 32
+    ensemble_spread: float = 0.3
+
+    def validate(self):
+        if self.optimizer not in OPTIMIZERS:
+            raise InputError(
+                "optimizer", f"unknown optimizer {self.optimizer!r}", f"use one of {', '.join(OPTIMIZERS)}"
+            )
+        if self.strategy not in STRATEGIES:
+            raise InputError("strategy", f"unknown strategy {self.strategy!r}", f"use one of {', '.join(STRATEGIES)}")
+        if self.ensemble not in ENSEMBLE_CHOICES:
+            raise InputError(
+                "ensemble", f"unknown choice {self.ensemble!r}", f"use one of {', '.join(ENSEMBLE_CHOICES)}"
+            )
+        if int(self.ensemble_members) < 4 or int(self.ensemble_members) % 2:
+            raise InputError("ensemble_members", "must be an even number >= 4", "set e.g. ensemble_members = 32")
+        for name in ("iterations", "segment_frames", "long_horizon_steps", "polish_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(name, "must be >= 1", f"set a positive {name}")
+        for name in (
+            "learning_rate",
+            "clip",
+            "tolerance",
+            "step_tolerance",
+            "warmup_step_tolerance",
+            "ensemble_spread",
+        ):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(name, "must be a finite number > 0", f"set a positive {name}")
+        return self
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of a fit over `frames` frames.
+
+    `kind`: "direct" (the optimiser on the loss), "shooting" (segments of `frames` frames
+    from recorded states) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
+    """
+
+    kind: str
+    frames: int
+def plan_stages(
+    observations: Observations, settings: FitSettings, scene: Scene | None = None, values: int = 1
+) -> list[Stage]:
+    """The stages a fit of `values` scalar parameter values runs through (see FitSettings.strategy, .ensemble)."""
+    total = observations.frame_count - 1
+    strategy = settings.strategy
+    rough = _touches_ground(scene, observations)
+    if strategy == "auto":
+        if observations.steps <= settings.long_horizon_steps and not rough:
+            strategy = "direct"
+        else:
+            strategy = "shooting" if observations.full else "curriculum"
+    if strategy == "shooting":
+        if not observations.full:
+            raise InputError(
+                "strategy",
+                "multiple shooting needs full recorded states of every particle",
+                "use curriculum, or observe all particles",
+            )
+        stages = [Stage("shooting", min(settings.segment_frames, total)), Stage("direct", total)]
+    elif strategy == "curriculum":
+        horizons = sorted({max(2, min(total, math.ceil(total * f))) for f in (0.125, 0.25, 0.5, 1.0)})
+        stages = [Stage("direct", h) for h in horizons]
+    else:
+        stages = [Stage("direct", total)]
+    ensemble = settings.ensemble == "ensemble" or (
+        settings.ensemble == "auto" and rough and values <= ENSEMBLE_MAX_PARAMETERS
+    )
+    if ensemble:
+        if values > ENSEMBLE_MAX_PARAMETERS:
+            raise InputError(
+                "ensemble",
+                f"the ensemble stage takes at most {ENSEMBLE_MAX_PARAMETERS} parameter values, not {values}",
+                'fit scalar parameters, or set ensemble = "gradient"',
+            )
+        stages[-1] = Stage("ensemble", total)
+    return stages
+def _touches_ground(scene: Scene | None, observations: Observations) -> bool:
+    """Whether the target reaches the ground plane (contact makes the loss landscape rough)."""
+    if scene is None or not scene.model.has("ground"):
+        return False
+    return bool(np.min(observations.x[..., 1]) < float(scene.params.ground_height))

@@ -1,0 +1,177 @@
+"""The schema checker shared by scene and experiment files: every value checked, every unknown key reported.
+
+`Table(data, path)` wraps one TOML table; `take(key, check)` reads a key through a
+check function (below) that turns the value into what the loader needs or raises
+`Bad` with what was expected; `finish()` reports keys nobody took.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from ..errors import InputError
+
+
+class Table:
+    def __init__(self, data: Any, path: str):
+        if not isinstance(data, dict):
+            raise InputError(path or "scene", "must be a table", f"write it as [{path}]")
+        self.data, self.path, self.seen = data, path, set()
+
+    def _field(self, key):
+        return f"{self.path}.{key}" if self.path else key
+
+    def take(self, key, check, required=False, default=None):
+        self.seen.add(key)
+        if key not in self.data:
+            if required:
+                raise InputError(self._field(key), "missing", f"add {key} = ...")
+            return default
+        try:
+            return check(self.data[key])
+        except Bad as bad:
+            got = repr(self.data[key])
+            got = got if len(got) <= 60 else got[:57] + "..."
+            raise InputError(self._field(key), f"{bad.problem}, got {got}", bad.fix) from None
+
+    def table(self, key, required=False):
+        self.seen.add(key)
+        if key not in self.data:
+            if required:
+                raise InputError(self._field(key), "missing table", f"add a [{self._field(key)}] table")
+            return None
+        return Table(self.data[key], self._field(key))
+
+    def finish(self):
+        unknown = sorted(set(self.data) - self.seen)
+        if unknown:
+            known = ", ".join(sorted(self.seen))
+            raise InputError(self._field(unknown[0]), "unknown key", f"remove it or use one of: {known}")
+
+
+class Bad(Exception):
+    def __init__(self, problem, fix):
+        self.problem, self.fix = problem, fix
+
+
+def string(value):
+    if not isinstance(value, str):
+        raise Bad("must be a string", 'quote it: "..."')
+    return value
+
+
+def boolean(value):
+    if not isinstance(value, bool):
+        raise Bad("must be true or false", "write true or false")
+    return value
+
+
+def flags(value):
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, list) and all(isinstance(v, bool) for v in value):
+        return value
+    raise Bad("must be true/false or a list of them", "write true, false or [true, false, ...]")
+
+
+def number(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise Bad("must be a number", "write a number")
+    if not math.isfinite(value):
+        raise Bad("must be finite (no NaN or inf)", "write a finite number")
+    return float(value)
+
+
+def positive(value):
+    value = number(value)
+    if value <= 0:
+        raise Bad("must be > 0", "give a positive number")
+    return value
+
+
+def count(value):
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise Bad("must be a non-negative integer", "write a whole number")
+    return value
+
+
+def values(value, check):
+    if isinstance(value, list):
+        if not value:
+            raise Bad("must not be empty", "give a number or a non-empty list")
+        return [check(v) for v in value]
+    return check(value)
+
+
+def non_negative_values(value):
+    def check(v):
+        v = number(v)
+        if v < 0:
+            raise Bad("must be >= 0", "give a non-negative value")
+        return v
+
+    return values(value, check)
+
+
+def positive_values(value):
+    return values(value, positive)
+
+
+def vector3(value):
+    if not isinstance(value, list) or len(value) != 3:
+        raise Bad("must be a list of 3 numbers", "write [x, y, z]")
+    return tuple(number(v) for v in value)
+
+
+def vectors(value):
+    if not isinstance(value, list) or not value:
+        raise Bad("must be a non-empty list of [x, y, z]", "write [[x, y, z], ...]")
+    return [vector3(v) for v in value]
+
+
+def index(value):
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise Bad("must hold integer indices", "write whole numbers")
+    return value
+
+
+def index_list(value):
+    if not isinstance(value, list):
+        raise Bad("must be a list of particle indices", "write [i, j, ...]")
+    return [index(v) for v in value]
+
+
+def index_lists(value):
+    if not isinstance(value, list):
+        raise Bad("must be a list of lattice indices", "write [[i, j], ...]")
+    return [index_list(v) for v in value]
+
+
+def tuples(value, size, what):
+    if not isinstance(value, list) or any(not isinstance(v, list) or len(v) != size for v in value):
+        raise Bad(f"must be a list of {what}", f"write [[{', '.join('abc'[:size])}], ...]")
+    return [[index(i) for i in v] for v in value]
+
+
+def index_pairs(value):
+    return tuples(value, 2, "index pairs")
+
+
+def index_triples(value):
+    return tuples(value, 3, "index triples")
+
+
+def shape(value):
+    if not isinstance(value, list) or not 1 <= len(value) <= 3:
+        raise Bad("must be a list of 1 to 3 counts", "write e.g. [31, 41]")
+    counts = [index(v) for v in value]
+    if any(c < 1 for c in counts):
+        raise Bad("counts must be >= 1", "give positive counts")
+    return tuple(counts)
+
+
+def string_list(value):
+    if not isinstance(value, list):
+        raise Bad("must be a list of strings", 'write ["a", "b"]')
+    return [string(v) for v in value]
