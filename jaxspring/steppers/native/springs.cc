@@ -3,7 +3,7 @@
 // For spring s = (a, b): d = x_b - x_a, L = |d|, u = d / L (u = d where L = 0, as
 // jaxspring's safe norm), e = L - L0, c = (v_b - v_a) . u, m = ks e + kd c,
 // f = m u; force_a += f, force_b -= f. The backward kernel is the exact transpose
-// of this map's derivative (see jaxspring/steppers/native_kernels.py for the formulas).
+// of this map's derivative. Both take the law and its adjoint from spring_law.h.
 #include <algorithm>
 #include <cstdint>
 #include <exception>
