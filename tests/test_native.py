@@ -19,6 +19,18 @@ if not _native.available():
 SCENES = ["mass_spring", "chain", "jelly", "cloth"]
 
 
+@pytest.fixture(scope="module")
+def scenes():
+    """The seed scenes on the pure-JAX backend: the reference every native result is held to."""
+    return {name: js.load_scene(name).with_backend("jax") for name in js.builtin_scenes()}
+
+
+def in_float32(tree):
+    """Every floating-point leaf of a model, params or state in float32 (the kernel's 16-lane path)."""
+    cast = lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a  # noqa: E731
+    return jax.tree_util.tree_map(cast, tree)
+
+
 def random_topology(seed=0, count=30, springs=80):
     rng = np.random.default_rng(seed)
     pairs = set()
@@ -160,7 +172,7 @@ def test_lattice_kernel_matches_jax_through_ground_contact(scenes):
     for name, drop, steps in (("jelly", 1.97, 150), ("cloth", 0.0, 60)):
         model, params, state = lattice_case(scenes[name], drop=drop)
         native = model.replace(backend="native")
-        assert native.native_lattice and native.grid
+        assert native.stepper.name == "native_lattice"
         a = js.rollout(native, params, state, steps, steps // 5)
         b = js.rollout(model, params, state, steps, steps // 5)
         assert relative(a.x, b.x) < 1e-12 and relative(a.v, b.v) < 1e-12, name
@@ -265,7 +277,7 @@ def test_lattice_batches_of_members_side_by_side(scenes):
     scene = scenes["cloth"]
     model, params, state = scene.model, scene.params, scene.state
     native = model.replace(backend="native")
-    assert native.native_lattice and len(native.lattice[0]) == 2
+    assert native.stepper.name == "native_lattice" and len(native.lattice[0]) == 2
     steps = 25
     rng = np.random.default_rng(3)
     per_spring = params.ks * jnp.asarray(rng.uniform(0.7, 1.3, (3, model.spring_count)))
@@ -288,7 +300,7 @@ def test_lattice_batches_of_members_side_by_side(scenes):
 
 def test_lattice_kernel_threads_on_a_large_lattice():
     """A 100 x 100 cloth (39k springs) splits over threads: same numbers, float64 and float32."""
-    scene = cloth_of_size((100, 100))
+    scene = cloth_of_size((100, 100)).with_backend("jax")
     model, params, state = scene.model, scene.params, scene.state
     native = model.replace(backend="native")
     state = state.replace(v=0.1 * jnp.asarray(np.random.default_rng(2).normal(size=state.v.shape)))
@@ -302,8 +314,7 @@ def test_lattice_kernel_threads_on_a_large_lattice():
     leaves = [jax.tree_util.tree_leaves(by_params(params, m)) for m in (native, model)]
     for a, b in zip(*leaves):
         assert relative(a, b) < 1e-11
-    single = js.State(x=state.x.astype(jnp.float32), v=state.v.astype(jnp.float32))
-    a = js.rollout(native, params, single, 20, 20).x
+    a = js.rollout(in_float32(native), in_float32(params), in_float32(state), 20, 20).x
     b = js.rollout(model, params, state, 20, 20).x
     assert a.dtype == jnp.float32 and float(jnp.max(jnp.abs(a - b))) < 1e-4
 
@@ -328,7 +339,7 @@ def test_lattice_gradients_of_only_what_is_asked_for(scenes):
         return model, params, state, loss
 
     cloth = problem(scenes["cloth"])
-    for model, params, _, loss in (cloth, problem(cloth_of_size((3, 3)))):
+    for model, params, _, loss in (cloth, problem(cloth_of_size((3, 3)).with_backend("jax"))):
         native = model.replace(backend="native")
         kd_per_spring = params.kd * jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, model.spring_count))
         for name, p in (("scalar ks, kd", params), ("scalar ks, kd per spring", params.replace(kd=kd_per_spring))):
@@ -340,9 +351,8 @@ def test_lattice_gradients_of_only_what_is_asked_for(scenes):
     # float32 (16 lanes a vector): near the float64 gradient (measured 3e-4, 2e-5, 2e-6)
     model, params, state, loss = cloth
     native = model.replace(backend="native")
-    single = js.State(x=state.x.astype(jnp.float32), v=state.v.astype(jnp.float32))
     exact = jax.grad(lambda p: loss(model, p, state))(params)
-    approx = jax.grad(lambda p: loss(native, p, single))(params)
+    approx = jax.grad(lambda p: loss(in_float32(native), in_float32(p), in_float32(state)))(params)
     for key, tolerance in (("ks", 2e-3), ("kd", 2e-4), ("cd", 2e-4)):
         assert relative(getattr(approx, key), getattr(exact, key)) < tolerance, key
     # the masses' cotangent without the rest lengths'

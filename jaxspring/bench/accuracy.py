@@ -20,11 +20,13 @@ import time
 import jax
 import numpy as np
 
-from ..io.scene import Scene, load_scene
+from ..io.scene import load_scene
 from ..io.trajectory import write_rows_csv
 from ..render import pyplot, save_figure
 from ..sim.integrators import INTEGRATORS
-from ..sim.rollout import _simulate, energy
+from ..sim.rollout import energy
+from ..sim.rollout import simulate as simulate_frames
+from ..sim.scene import Scene
 from ..sim.stability import energy_threshold
 from ..sim.state import Trajectory
 
@@ -62,7 +64,7 @@ def _frames(scene: Scene, integrator: str, dt: float, horizon: float, interval: 
 def simulate(scene: Scene, integrator: str, dt: float, horizon: float, interval: float, repeats: int = 1):
     """(trajectory, median wall seconds of a compiled run) of one configuration."""
     model, every, frames = _frames(scene, integrator, dt, horizon, interval)
-    compiled = _simulate.lower(model, scene.params, scene.state, frames, every).compile()
+    compiled = simulate_frames.lower(model, scene.params, scene.state, frames, every).compile()
     times = []
     for _ in range(max(1, repeats)):
         start = time.perf_counter()

@@ -16,11 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..io.scene import Scene, load_scene, scene_from_dict
+from ..io.scene import load_scene, scene_from_dict
 from ..io.trajectory import write_rows_csv
 from ..render import pyplot, save_figure
-from ..sim.rollout import _simulate
-from ..steppers import native_kernels as _native
+from ..sim.rollout import simulate
+from ..sim.scene import Scene
 from . import peers as _peers
 
 # cloth sizes of the scaling study: the seed cloth's material, spacing and dt
@@ -57,6 +57,7 @@ class SpeedRow:
     springs: int
     steps_per_second: float
     ns_per_spring_step: float
+    stepper: str = ""  # which stepper ran (jaxspring rows)
     gradient_ratio: float = float("nan")  # value_and_grad time / forward time, same horizon
     gradient_mode: str = ""
     compile_forward_s: float = float("nan")
@@ -94,17 +95,19 @@ def _steps_for(springs: int) -> int:
 
 
 def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: int, batch: bool) -> SpeedRow:
-    """jaxspring itself: "jaxspring" on the pure-JAX backend, "jaxspring_native" on the C++ kernel."""
+    """jaxspring itself: "jaxspring" as a loaded scene runs by default (backend "auto"),
+    "jaxspring_jax" on the pure-JAX backend (the reference path, and the one GPUs run)."""
     m, p, s = scene.model, scene.params, scene.state
     start = time.perf_counter()
-    forward = _simulate.lower(m, p, s, 1, steps).compile()
+    forward = simulate.lower(m, p, s, 1, steps).compile()
     compile_forward = time.perf_counter() - start
     jax.block_until_ready(forward(m, p, s))
     wall = _median_time(lambda: jax.block_until_ready(forward(m, p, s)), repeats)
-    label = "jaxspring_native" if m.backend == "native" else "jaxspring"
+    label = "jaxspring_jax" if m.backend == "jax" else "jaxspring"
     row = SpeedRow(
         scene.name, label, m.particle_count, m.spring_count, steps / wall, wall / steps / m.spring_count * 1e9
     )
+    row.stepper = m.stepper.name
     row.compile_forward_s, row.memory_forward_mib = compile_forward, _memory_mib(forward)
 
     names = [n for n in ("ks", "kd", "cd") if getattr(p, n) is not None]
@@ -131,7 +134,7 @@ def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: in
     row.gradient_mode = "plain" if mode is None else "checkpoint sqrt"
     row.memory_gradient_mib = _memory_mib(compiled)
     jax.block_until_ready(compiled(values))
-    fwd = _simulate.lower(m, p, s, 1, gradient_steps).compile()
+    fwd = simulate.lower(m, p, s, 1, gradient_steps).compile()
     jax.block_until_ready(fwd(m, p, s))
     grad_wall, fwd_wall = _alternating_medians(
         [lambda: jax.block_until_ready(compiled(values)), lambda: jax.block_until_ready(fwd(m, p, s))], repeats
@@ -140,7 +143,7 @@ def measure_jaxspring(scene: Scene, steps: int, repeats: int, gradient_steps: in
 
     if batch:
         ks = p.ks * jnp.linspace(0.8, 1.2, BATCH, dtype=s.x.dtype)
-        batched = jax.jit(jax.vmap(lambda k: _simulate(m, p.replace(ks=k), s, 1, steps)[0].x)).lower(ks).compile()
+        batched = jax.jit(jax.vmap(lambda k: simulate(m, p.replace(ks=k), s, 1, steps)[0].x)).lower(ks).compile()
         jax.block_until_ready(batched(ks))
         batch_wall, single_wall = _alternating_medians(
             [lambda: jax.block_until_ready(batched(ks)), lambda: jax.block_until_ready(forward(m, p, s))], repeats
@@ -156,7 +159,7 @@ def measure_peer(scene: Scene, name: str, steps: int, repeats: int) -> SpeedRow:
     make = {"jax_segment_sum": _peers.jax_segment_sum, "numpy": _peers.numpy_step, "warp": _peers.warp_step}[name]
     run = make(scene)
     check = min(steps, CHECK_STEPS)
-    reference = np.asarray(jax.block_until_ready(_simulate(scene.model, scene.params, scene.state, 1, check)[0].x))
+    reference = np.asarray(jax.block_until_ready(simulate(scene.model, scene.params, scene.state, 1, check)[0].x))
     difference = float(np.max(np.abs(run(check) - reference)))
     run(steps)  # compile / warm up
     wall = _median_time(lambda: run(steps), repeats)
@@ -184,7 +187,9 @@ def sweep(quick: bool = False, repeats: int = 5, peers=("jax_segment_sum", "nump
         steps = 200 if quick else _steps_for(springs)
         big = scene.model.particle_count > 20_000
         gradient_steps = 200 if (quick or big) else 2000
-        variants = [scene] + ([scene.with_backend("native")] if _native.available() else [])
+        variants = [scene]  # the default path: what `load_scene` + `rollout` run
+        if scene.model.stepper.name != scene.with_backend("jax").model.stepper.name:
+            variants.append(scene.with_backend("jax"))
         for variant in variants:
             row = measure_jaxspring(variant, steps, repeats, gradient_steps, batch=not big)
             rows.append(row)
@@ -214,7 +219,7 @@ def write_csv(rows, path):
 def markdown(rows) -> str:
     by = {(r.workload, r.implementation): r for r in rows}
     peers = [p for p in ("jax_segment_sum", "numpy", "warp") if any(r.implementation == p for r in rows)]
-    header = "| workload | backend | particles | springs | steps/s | " + " | ".join(f"x {p}" for p in peers)
+    header = "| workload | jaxspring (stepper) | particles | springs | steps/s | " + " | ".join(f"x {p}" for p in peers)
     header += " | grad / fwd | compile fwd / grad [s] | memory fwd / grad [MiB] | batch 64 / single |"
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
@@ -227,7 +232,7 @@ def markdown(rows) -> str:
         batch = "—" if np.isnan(r.batch_ratio) else f"{r.batch_ratio:.2f}"
         grad = f"{r.gradient_ratio:.2f}" + (" (ckpt)" if r.gradient_mode != "plain" else "")
         lines.append(
-            f"| {r.workload} | {'native' if r.implementation.endswith('native') else 'jax'} | {r.particles} | "
+            f"| {r.workload} | {r.implementation} ({r.stepper}) | {r.particles} | "
             f"{r.springs} | {r.steps_per_second:,.0f} | {' | '.join(ratios)} | "
             f"{grad} | {r.compile_forward_s:.2f} / {r.compile_gradient_s:.2f} | "
             f"{r.memory_forward_mib:.1f} / {r.memory_gradient_mib:.1f} | {batch} |"
@@ -251,7 +256,7 @@ def plot(rows, path):
     plt = pyplot()
     cloths = [r for r in rows if r.workload.startswith("cloth")]
     fig, ax = plt.subplots(figsize=(6, 4))
-    for name, marker in zip(("jaxspring", "jaxspring_native", "jax_segment_sum", "numpy", "warp"), "ovsD^"):
+    for name, marker in zip(("jaxspring", "jaxspring_jax", "jax_segment_sum", "numpy", "warp"), "ovsD^"):
         mine = sorted((r for r in cloths if r.implementation == name), key=lambda r: r.springs)
         if mine:
             ax.loglog([r.springs for r in mine], [r.ns_per_spring_step for r in mine], marker=marker, label=name)

@@ -82,10 +82,6 @@ class Springs:
 
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
-            if model.backend == "native":
-                from ..steppers.native_kernels import spring_force
-
-                return spring_force(x, v, model.springs, model.rest_length, params.ks, params.kd)
             f, _ = self.spring_vectors(model, params, x, v)
             a, b = model.springs[:, 0], model.springs[:, 1]
             return jnp.zeros_like(x).at[a].add(f).at[b].add(-f)

@@ -82,9 +82,14 @@ class Model:
         return term in self.terms
 
     def forward_mode(self) -> Model:
-        """This model on its stepper's pure-JAX twin, for jvp/jacfwd (the native steppers are
-        reverse-mode only). The twin keeps the internal layout, so states pass between them."""
-        return self if self.stepper.forward_mode else self.replace(stepper=self.stepper.pure_jax())
+        """This model on the pure-JAX backend, for jvp/jacfwd (the native steppers are reverse-mode
+        only). It keeps the stepper's layout, so states pass between them (a native springs model
+        of a lattice becomes a generic one), and stays pure JAX when its terms are changed."""
+        if self.stepper.forward_mode:
+            return self
+        twin = self.replace(backend="jax", lattice=self.lattice if self.stepper.layout == "grid" else None)
+        assert twin.stepper.layout == self.stepper.layout, (twin.stepper, self.stepper)
+        return twin
 
     def force(self, params: Params, x: jax.Array, v: jax.Array) -> jax.Array:
         """Total force on every particle [N], shape (N, 3)."""

@@ -40,11 +40,11 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
         >>> scene = js.load_scene("cloth")
         >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
     """
-    frames = _frame_count(steps, save_every)
+    frames = frame_count(steps, save_every)
     state = _in_model_precision(model, state)
     segment = _segment_length(checkpoint, frames * save_every)
     if segment is None:
-        _, x, v = _simulate(model, params, state, frames, save_every)
+        _, x, v = simulate(model, params, state, frames, save_every)
     else:
         _, x, v = _simulate_checkpointed(model, params, state, frames, save_every, segment)
     t = jnp.arange(frames + 1) * (save_every * model.dt)
@@ -61,7 +61,7 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
     Example:
         >>> end = js.final_state(scene.model, scene.params, scene.state, steps=1000)
     """
-    end, _, _ = _simulate(model, params, _in_model_precision(model, state), 1, int(steps))
+    end, _, _ = simulate(model, params, _in_model_precision(model, state), 1, int(steps))
     return end
 
 
@@ -74,7 +74,7 @@ def _in_model_precision(model: Model, state: State) -> State:
     return State(x=jnp.asarray(state.x, dtype), v=jnp.asarray(state.v, dtype))
 
 
-def _frame_count(steps, save_every) -> int:
+def frame_count(steps, save_every) -> int:
     steps, save_every = int(steps), int(save_every)
     if save_every < 1:
         raise InputError("save_every", f"must be >= 1, got {save_every}", "save at least every step")
@@ -88,7 +88,7 @@ def _frame_count(steps, save_every) -> int:
 
 
 @functools.partial(jax.jit, static_argnames=("frames", "save_every"))
-def _simulate(model, params, state, frames, save_every):
+def simulate(model, params, state, frames, save_every):
     """(end state, x, v (frames, N, 3)); the scan runs in the model's internal layout."""
 
     stepper = model.stepper
@@ -119,7 +119,7 @@ def _segment_length(checkpoint, steps: int):
 
 @functools.partial(jax.jit, static_argnames=("frames", "save_every", "segment"))
 def _simulate_checkpointed(model, params, state, frames, save_every, segment):
-    """`_simulate` storing only segment-boundary states for reverse mode.
+    """`simulate` storing only segment-boundary states for reverse mode.
 
     Every step is rematerialised (its residuals are recomputed from its input state
     during the backward pass), and so is every segment of `segment` steps: the

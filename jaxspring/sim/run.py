@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .rollout import _frame_count, _simulate
+from .rollout import frame_count, simulate
 from .scene import Scene
 from .stability import (
     BlowUp,
@@ -70,7 +70,7 @@ def run_scene(
     from tqdm.auto import tqdm
 
     model, params, state = scene.model, scene.params, scene.state
-    frames = _frame_count(steps, save_every)
+    frames = frame_count(steps, save_every)
     stability = stability or estimate_stability(model, params, state)
     threshold = energy_threshold(model, params, state)
     per_chunk = max(1, min(frames, CHUNK_STEPS // save_every)) if frames else 0
@@ -80,7 +80,7 @@ def run_scene(
         nonlocal compile_s
         if n not in compiled:
             start = time.perf_counter()
-            compiled[n] = _simulate.lower(model, params, state, frames=n, save_every=save_every).compile()
+            compiled[n] = simulate.lower(model, params, state, frames=n, save_every=save_every).compile()
             compile_s += time.perf_counter() - start
         return compiled[n]
 

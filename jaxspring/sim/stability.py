@@ -13,7 +13,7 @@ import numpy as np
 from .integrators import INTEGRATORS, as_integrator
 from .model import Model
 from .params import Params
-from .rollout import _simulate, energy
+from .rollout import energy, simulate
 from .state import State, Trajectory
 
 ENERGY_GAIN_FACTOR = 0.5  # energy may not grow by more than this fraction of the energy scale
@@ -235,7 +235,7 @@ def locate_blowup(
     stability: StabilityEstimate,
 ) -> BlowUp:
     """Re-run step by step from the last good state to find the exact first bad step."""
-    _, x, v = _simulate(model, params, good_state, int(max_steps), 1)
+    _, x, v = simulate(model, params, good_state, int(max_steps), 1)
     offset = first_bad_frame(model, params, x, v, threshold)
     offset = max_steps - 1 if offset is None else offset
     xs, vs = np.asarray(x[offset]), np.asarray(v[offset])

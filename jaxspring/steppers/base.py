@@ -26,6 +26,7 @@ class Stepper:
 
     Class attributes:
         name: the stepper's name (shown in benchmarks and errors).
+        layout: "particles" ((N, 3) arrays) or "grid" ((3, *lattice shape), see `layout`).
         forward_mode: whether jvp/jacfwd run through it (the native kernels are reverse-mode only).
         fused: whether `advance` runs many steps in one call that keeps its own
             reverse-mode checkpoints (rollouts then do not checkpoint inside it).
@@ -34,6 +35,7 @@ class Stepper:
     """
 
     name: ClassVar[str] = "generic"
+    layout: ClassVar[str] = "particles"
     forward_mode: ClassVar[bool] = True
     fused: ClassVar[bool] = False
     terms: ClassVar[frozenset | None] = None

@@ -22,6 +22,7 @@ class Grid(Stepper):
     """Lattice models (springs that are whole neighbour families) in grid layout, pure JAX."""
 
     name: ClassVar[str] = "grid"
+    layout: ClassVar[str] = "grid"
 
     def refusal(self, model) -> str | None:
         if model.lattice is None:
