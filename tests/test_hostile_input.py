@@ -25,7 +25,9 @@ def _jaxspring(*args, cwd):
 def float32_recording(tmp_path_factory):
     """A chain recording written by `jaxspring run` with its default settings (float32)."""
     folder = tmp_path_factory.mktemp("float32")
-    result = _jaxspring("run", "chain", "--steps", "400", "--save-every", "20", "--out", "rec.h5", "--quiet", cwd=folder)
+    result = _jaxspring(
+        "run", "chain", "--steps", "400", "--save-every", "20", "--out", "rec.h5", "--quiet", cwd=folder
+    )
     assert result.returncode == 0, result.stderr
     with h5py.File(folder / "rec.h5") as f:
         assert f["trajectory/x"].dtype == np.float32  # the case under test

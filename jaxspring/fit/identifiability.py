@@ -40,6 +40,8 @@ class _PolishSteps(list):
 
     final: dict
     final_loss: float
+
+
 def gauss_newton_polish(scene, observations, names, values, settings, max_parameters: int = 64):
     """Levenberg-Marquardt on the full-horizon residuals, from the first-order optimiser's answer.
 
@@ -83,6 +85,8 @@ def gauss_newton_polish(scene, observations, names, values, settings, max_parame
     steps.final = to_values(flat)
     steps.final_loss = cost / r.size
     return steps
+
+
 def identifiability(scene: Scene, observations: Observations, names, values: dict, max_parameters: int = 64):
     """Gauss-Newton standard errors and correlations of `values` for the full-horizon fit.
 
@@ -142,6 +146,8 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
                     "the data constrain a combination of them, not each"
                 )
     return Identifiability(standard_error, relative, correlation, tuple(labels), math.sqrt(sigma2), tuple(warnings))
+
+
 def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:
     """Check the Gauss-Newton quadratic model one standard error either side of the point.
 
@@ -172,6 +178,8 @@ def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:
                 )
                 break
     return warnings
+
+
 def _labels(theta: dict) -> list[str]:
     labels = []
     for name, value in sorted(theta.items()):

@@ -26,6 +26,8 @@ def _optimizer(settings: FitSettings):
     if settings.optimizer == "lbfgs":
         return optax.lbfgs()
     return optax.chain(optax.clip_by_global_norm(settings.clip), optax.adam(settings.learning_rate))
+
+
 def step_function(loss, settings: FitSettings, data_batched: bool):
     optimizer = _optimizer(settings)
 
@@ -43,6 +45,8 @@ def step_function(loss, settings: FitSettings, data_batched: bool):
     init = jax.jit(jax.vmap(optimizer.init))
     value = jax.jit(jax.vmap(loss, in_axes=(0, 0 if data_batched else None)))
     return step, init, value
+
+
 def fit(
     scene: Scene,
     observations: Observations,
@@ -68,6 +72,8 @@ def fit(
         >>> print(result.table())
     """
     return fit_batch(scene, [observations], params, [init or {}], settings, **kwargs)[0]
+
+
 def fit_batch(
     scene: Scene,
     observations: list[Observations],
@@ -170,6 +176,8 @@ def fit_batch(
         if on_iteration:
             on_iteration(progress, stages)
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify)
+
+
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state) -> bool:
     """Whether every member has converged in the current stage (see FitSettings)."""
     if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage says so itself
@@ -188,6 +196,8 @@ def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, 
         return False
     before = np.asarray(in_stage[-6])
     return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))
+
+
 def _results(scene, observations, names, start_values, settings, stages, progress, data, identify):
     batched_data = len(observations) > 1
     loss = loss_function(scene, observations[0], names, stages[-1])

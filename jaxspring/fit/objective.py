@@ -40,6 +40,8 @@ def check_names(scene: Scene, names, init: dict | None):
                 f"init.{name}", f"must be > 0 (fitted in log space), got {value}", "give a positive start value"
             )
     return names
+
+
 def misfit_function(scene: Scene, observations: Observations, names, frames: int):
     """misfit(theta, data): simulated minus observed positions over the first `frames` frames, (frames, M, 3).
 
@@ -56,6 +58,8 @@ def misfit_function(scene: Scene, observations: Observations, names, frames: int
         return x[1:, particles] - data["x"][1 : frames + 1]
 
     return misfit
+
+
 def loss_function(scene: Scene, observations: Observations, names, stage: Stage):
     """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
     model, base = scene.model, scene.params
@@ -81,12 +85,16 @@ def loss_function(scene: Scene, observations: Observations, names, stage: Stage)
         return jnp.mean((jax.vmap(run)(starts)[:, :, particles] - target) ** 2)
 
     return loss
+
+
 def target_data(observations: Observations) -> dict:
     data = {"x": jnp.asarray(observations.x), "x0": observations.initial_state.x, "v0": observations.initial_state.v}
     if observations.states is not None:
         data["states_x"] = jnp.asarray(observations.states.x)
         data["states_v"] = jnp.asarray(observations.states.v)
     return data
+
+
 def residual_function(scene: Scene, observations: Observations, names, values: dict):
     """(flat log parameters, unravel, residuals(flat) -> (n,)) for the full horizon."""
     theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}

@@ -87,7 +87,9 @@ def observations_from_trajectory(
         particles=observed,
         save_every=int(save_every),
         initial_state=State(x=jnp.asarray(x[0]), v=jnp.asarray(velocities[0])),
-        states=Trajectory(x=jnp.asarray(x), v=jnp.asarray(velocities), t=jnp.asarray(trajectory.t, dtype)) if full else None,
+        states=Trajectory(x=jnp.asarray(x), v=jnp.asarray(velocities), t=jnp.asarray(trajectory.t, dtype))
+        if full
+        else None,
         noise_std=float(noise_std),
         truth=truth,
     )

@@ -36,6 +36,8 @@ class FitProgress:
     last_step: np.ndarray | None = None
     done: bool = False
     wall_s: float = 0.0
+
+
 @dataclasses.dataclass(frozen=True)
 class FitResult:
     """The outcome of a fit (one member; `fit_batch` returns a list of these).
@@ -93,6 +95,8 @@ class FitResult:
         if ident:
             rows += [f"warning: {w}" for w in ident.warnings]
         return "\n".join(rows)
+
+
 def _short(value) -> str:
     value = np.asarray(value)
     if value.ndim == 0:

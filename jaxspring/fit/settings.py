@@ -17,6 +17,8 @@ OPTIMIZERS = ("lbfgs", "adam")
 STRATEGIES = ("auto", "direct", "curriculum", "shooting")
 ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
 ENSEMBLE_MAX_PARAMETERS = 8  # scalar values; a Gaussian cloud needs several rollouts per dimension
+
+
 @dataclasses.dataclass(frozen=True)
 class FitSettings:
     """How to fit.
@@ -98,6 +100,8 @@ class FitSettings:
             if not (math.isfinite(value) and value > 0):
                 raise InputError(name, "must be a finite number > 0", f"set a positive {name}")
         return self
+
+
 @dataclasses.dataclass(frozen=True)
 class Stage:
     """One stage of a fit over `frames` frames.
@@ -108,6 +112,8 @@ class Stage:
 
     kind: str
     frames: int
+
+
 def plan_stages(
     observations: Observations, settings: FitSettings, scene: Scene | None = None, values: int = 1
 ) -> list[Stage]:
@@ -145,6 +151,8 @@ def plan_stages(
             )
         stages[-1] = Stage("ensemble", total)
     return stages
+
+
 def _touches_ground(scene: Scene | None, observations: Observations) -> bool:
     """Whether the target reaches the ground plane (contact makes the loss landscape rough)."""
     if scene is None or not scene.model.has("ground"):

@@ -247,7 +247,9 @@ def _explicit_topology(particles: schema.Table, springs_table: schema.Table | No
     springs = np.zeros((0, 2), dtype=np.int64)
     rest_length = None
     if springs_table is not None:
-        springs = np.asarray(springs_table.take("pairs", schema.index_pairs, required=True), dtype=np.int64).reshape(-1, 2)
+        springs = np.asarray(springs_table.take("pairs", schema.index_pairs, required=True), dtype=np.int64).reshape(
+            -1, 2
+        )
         rest_length = springs_table.take("rest_length", schema.non_negative_values, default=None)
         if rest_length is not None and np.ndim(rest_length) == 1 and len(rest_length) != springs.shape[0]:
             raise InputError(

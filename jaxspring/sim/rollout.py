@@ -104,7 +104,11 @@ def simulate(model, params, state, frames, save_every):
 def _outside(model, end, x, v):
     """End state and frames from the stepper's layout back to (N, 3)."""
     stepper = model.stepper
-    return stepper.from_internal(model, end), stepper.array_from_internal(model, x), stepper.array_from_internal(model, v)
+    return (
+        stepper.from_internal(model, end),
+        stepper.array_from_internal(model, x),
+        stepper.array_from_internal(model, v),
+    )
 
 
 def _segment_length(checkpoint, steps: int):

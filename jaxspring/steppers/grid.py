@@ -48,4 +48,3 @@ class Grid(Stepper):
     def mass_and_free(self, model):
         shape = model.lattice[0]
         return to_grid(shape, model.mass), to_grid(shape, ~model.pinned)
-
