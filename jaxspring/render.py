@@ -16,10 +16,15 @@ _TO_PLOT = (0, 2, 1)
 
 
 def pyplot():
-    """matplotlib.pyplot on the non-interactive Agg backend (files only)."""
+    """matplotlib.pyplot; on the non-interactive Agg backend (files only) unless pyplot is
+    already in use (a notebook's inline figures stay as they are) or MPLBACKEND says otherwise."""
+    import os
+    import sys
+
     import matplotlib
 
-    matplotlib.use("Agg")
+    if "matplotlib.pyplot" not in sys.modules and not os.environ.get("MPLBACKEND"):
+        matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt

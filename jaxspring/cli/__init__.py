@@ -1,4 +1,4 @@
-"""The `jaxspring` command line (DESIGN.md section 5): one module per subcommand.
+"""The `jaxspring` command line (docs/cli.md): one module per subcommand.
 
 Every error a user can cause ends in one line naming the problem and the fix,
 exit code 2, no traceback, and no output file left half-written.

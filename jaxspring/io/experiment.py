@@ -81,7 +81,7 @@ def observations_from_file(scene: Scene, path, particles=None) -> Observations:
 
 
 def load_experiment(path) -> Experiment:
-    """Load and validate an experiment TOML file (see README, 'Experiment files').
+    """Load and validate an experiment TOML file (see docs/file-formats.md).
 
     Example:
         >>> experiment = js.load_experiment("fitting/cloth.toml")

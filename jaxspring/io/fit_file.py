@@ -1,4 +1,4 @@
-"""Fit files (HDF5, DESIGN.md section 4): results, histories and the state needed to resume."""
+"""Fit files (HDF5, docs/file-formats.md): results, histories and the state needed to resume."""
 
 from __future__ import annotations
 

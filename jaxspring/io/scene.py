@@ -78,7 +78,7 @@ def load_scene(path_or_name) -> Scene:
 
 
 def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
-    """Build a Scene from the parsed contents of a scene file (see README, 'Scene files')."""
+    """Build a Scene from the parsed contents of a scene file (see docs/file-formats.md)."""
     top = schema.Table(document, "")
     name = top.take("name", schema.string, default=default_name)
     description = top.take("description", schema.string, default="")

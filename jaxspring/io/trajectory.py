@@ -1,4 +1,4 @@
-"""Trajectory files (HDF5, DESIGN.md section 4) with atomic writes."""
+"""Trajectory files (HDF5, docs/file-formats.md) with atomic writes."""
 
 from __future__ import annotations
 

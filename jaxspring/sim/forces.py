@@ -60,7 +60,7 @@ def per_item(value: jax.Array) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class Springs:
-    """Springs with damping along the spring (DESIGN.md section 2).
+    """Springs with damping along the spring (docs/physics.md).
 
     For spring (a, b) with d = x_b - x_a, L = |d|, u = d / L, the force on a is
     f = [ks (L - L0) + kd ((v_b - v_a) . u)] u and on b it is -f.

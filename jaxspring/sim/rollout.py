@@ -66,8 +66,9 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
 
 
 def _in_model_precision(model: Model, state: State) -> State:
-    """The state promoted to the precision the step computes in (a float32 state read from a
-    file meets a float64 model when x64 is on); a state already there is returned as is."""
+    """The state promoted to the wider of its own and the model's precisions, which the step
+    computes in (a float32 state read from a file meets a float64 model when x64 is on); a
+    state already there is returned as is."""
     dtype = jnp.result_type(state.x, state.v, model.mass)
     if state.x.dtype == dtype and state.v.dtype == dtype:
         return state

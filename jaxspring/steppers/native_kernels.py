@@ -1,17 +1,19 @@
 """Native CPU kernels (C++ through `jax.ffi`), forward and reverse mode.
 
-`jaxspring/steppers/native/springs.cc` and `lattice.cc` are compiled by the package build into
+The sources in `jaxspring/steppers/native/` (`springs.cc`, the `lattice_*.cc` files, and the
+spring law written once in `spring_law.h`) are compiled by the package build into
 `jaxspring/steppers/_native_springs*.so` (an optional extension: if it cannot be built the
 install still succeeds). Two kernels, each wrapped in a `jax.custom_vjp` whose
 backward is native too:
 
 - `spring_force`: the spring forces of any topology in one pass over the springs,
-  and the exact reverse-mode derivative in another (used inside the JAX step).
-- `lattice_advance`: whole semi-implicit Euler steps of a lattice scene (below).
+  and the exact reverse-mode derivative in another (the native springs stepper's force).
+- `lattice_advance`: whole semi-implicit Euler steps of a lattice scene (below; the native
+  lattice stepper's `advance`).
 
 Being custom VJPs they support reverse mode (`grad`, `vjp`) and `vmap`, but not
-forward mode (`jvp`, `jacfwd`): models with backend "native" fall back to the pure-JAX
-path where jaxspring itself needs forward mode (backward Euler's Newton solve, the
+forward mode (`jvp`, `jacfwd`): the native steppers hand over to their pure-JAX twins
+where jaxspring itself needs forward mode (backward Euler's Newton solve, the
 stability analyser, Gauss-Newton in fitting; `Model.forward_mode`).
 
 Backward formulas, per spring, with cf = ct_a - ct_b (the force's cotangent):
