@@ -27,6 +27,7 @@ from .fit import (
 )
 from .io.experiment import Experiment, load_experiment, observations_from_file
 from .io.fit_file import load_fit_progress, save_fit
+from .io.recording import Recording, load_recording, save_recording
 from .io.scene import builtin_scenes, load_scene, scene_from_dict
 from .io.trajectory import load_trajectory, save_trajectory
 from .render import plot_fit, render
@@ -88,6 +89,9 @@ __all__ = [
     # files and pictures
     "save_trajectory",
     "load_trajectory",
+    "Recording",
+    "load_recording",
+    "save_recording",
     "render",
     "plot_fit",
     # fitting
