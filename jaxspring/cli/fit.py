@@ -116,7 +116,7 @@ def command(args):
     out = Path(args.out or f"{default}.fit.h5")
     check_out_folder(out)
     progress = load_fit_progress(out, config, names) if args.resume else None
-    present = scene.params.to_dict()
+    present = scene.model.parameter_values(scene.params)
     initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
     latest = [None]
     bar = tqdm(

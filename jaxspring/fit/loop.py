@@ -124,7 +124,7 @@ def fit_batch(
         data = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[target_data(o) for o in observations])
     else:
         data = target_data(reference)
-    present = scene.params.to_dict()
+    present = scene.model.parameter_values(scene.params)
     stages = plan_stages(reference, settings, scene, values=sum(int(np.size(present[n])) for n in names))
     start_values = [{n: jnp.asarray(init.get(n, present[n]), dtype=float) for n in names} for init in inits]
     if progress is None:

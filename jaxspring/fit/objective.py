@@ -8,6 +8,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..errors import InputError
+from ..sim.params import split_name
 from ..sim.rollout import rollout
 from ..sim.scene import Scene
 from ..sim.state import State
@@ -19,15 +20,15 @@ def check_names(scene: Scene, names, init: dict | None):
     names = tuple(names)
     if not names:
         raise InputError("params", "nothing to fit", "name at least one parameter, e.g. ks")
-    present = scene.params.to_dict()
+    present = scene.model.parameter_values(scene.params)
     for name in names:
-        if name not in FITTABLE:
+        if split_name(name)[0] not in FITTABLE:
             raise InputError("params", f"{name!r} cannot be fitted", f"fit some of {', '.join(FITTABLE)}")
         if name not in present:
             raise InputError(
                 "params",
                 f"the scene has no parameter {name!r} (its terms are {', '.join(scene.model.terms)})",
-                f"fit some of {', '.join(n for n in present if n in FITTABLE)}",
+                f"fit some of {', '.join(n for n in present if split_name(n)[0] in FITTABLE)}",
             )
     for name, value in (init or {}).items():
         if name not in names:
@@ -52,7 +53,7 @@ def misfit_function(scene: Scene, observations: Observations, names, frames: int
     every = observations.save_every
 
     def misfit(theta, data):
-        params = base.replace(**{n: jnp.exp(theta[n]) for n in names})
+        params = model.params_with(base, {n: jnp.exp(theta[n]) for n in names})
         start = State(x=data["x0"], v=data["v0"])
         x = rollout(model, params, start, steps=frames * every, save_every=every).x
         return x[1:, particles] - data["x"][1 : frames + 1]
@@ -67,7 +68,7 @@ def loss_function(scene: Scene, observations: Observations, names, stage: Stage)
     every = observations.save_every
 
     def params_of(theta):
-        return base.replace(**{n: jnp.exp(theta[n]) for n in names})
+        return model.params_with(base, {n: jnp.exp(theta[n]) for n in names})
 
     if stage.kind in ("direct", "ensemble"):
         misfit = misfit_function(scene, observations, names, stage.frames)
@@ -105,7 +106,7 @@ def residual_function(scene: Scene, observations: Observations, names, values: d
     target = jnp.asarray(observations.x)
 
     def residuals(vector):
-        p = base.replace(**{n: jnp.exp(v) for n, v in unravel(vector).items()})
+        p = model.params_with(base, {n: jnp.exp(v) for n, v in unravel(vector).items()})
         x = rollout(model, p, observations.initial_state, steps=frames * every, save_every=every).x
         return (x[1:, particles] - target[1:]).reshape(-1)
 

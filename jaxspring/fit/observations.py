@@ -127,5 +127,5 @@ def synthetic_observations(
         noise[:, np.asarray(scene.model.pinned)] = 0.0
         x = x + noise
     noisy = Trajectory(x=jnp.asarray(x, dtype=traj.x.dtype), v=traj.v, t=traj.t)
-    truth = {name: np.asarray(value) for name, value in params.to_dict().items()}
+    truth = {name: np.asarray(value) for name, value in scene.model.parameter_values(params).items()}
     return observations_from_trajectory(scene, noisy, save_every, particles, noise_std=std, truth=truth)

@@ -83,14 +83,15 @@ class FitResult:
     def table(self) -> str:
         """A plain-text table: fitted value, true value, relative error, standard error."""
         ident = self.identifiability
-        rows = [f"{'param':<7}{'initial':>12}{'fitted':>14}{'true':>12}{'rel. error':>12}{'std. error':>12}"]
+        width = max([7] + [len(n) + 1 for n in self.names])
+        rows = [f"{'param':<{width}}{'initial':>12}{'fitted':>14}{'true':>12}{'rel. error':>12}{'std. error':>12}"]
         errors = self.relative_errors()
         for n in self.names:
             value = np.asarray(self.final[n])
             true = "" if not self.truth or n not in self.truth else _short(self.truth[n])
             rel = f"{errors[n]:.2e}" if n in errors else ""
             se = _short(ident.standard_error[n]) if ident else ""
-            rows.append(f"{n:<7}{_short(self.initial[n]):>12}{_short(value):>14}{true:>12}{rel:>12}{se:>12}")
+            rows.append(f"{n:<{width}}{_short(self.initial[n]):>12}{_short(value):>14}{true:>12}{rel:>12}{se:>12}")
         rows.append(f"final loss {self.final_loss:.4g} m^2 after {self.iterations} iterations in {self.wall_s:.2f} s")
         if ident:
             rows += [f"warning: {w}" for w in ident.warnings]

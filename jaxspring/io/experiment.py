@@ -73,7 +73,7 @@ def observations_from_file(scene: Scene, path, particles=None) -> Observations:
             f"{path} has {recorded.model.particle_count} particles but the scene has {scene.model.particle_count}",
             "give a target recorded from this scene",
         )
-    truth = {k: v for k, v in recorded.params.to_dict().items()}
+    truth = recorded.model.parameter_values(recorded.params)
     try:
         return observations_from_trajectory(scene, trajectory, recorded.save_every, particles, truth=truth)
     except InputError as exc:

@@ -91,8 +91,8 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
         raise InputError("steps", f"{steps} is not a multiple of save_every={save_every}", "make it one")
 
     physics = top.table("physics", required=True)
-    ks = physics.take("ks", schema.non_negative_values)
-    kd = physics.take("kd", schema.non_negative_values)
+    ks = physics.take("ks", schema.grouped_non_negative_values)
+    kd = physics.take("kd", schema.grouped_non_negative_values)
     cd = physics.take("cd", schema.non_negative_values)
     gravity = physics.take("gravity", schema.vector3, default=DEFAULT_GRAVITY)
     physics.finish()
@@ -109,7 +109,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
 
     lattice = top.table("lattice")
     particles = top.table("particles")
-    springs_table = top.table("springs")
+    springs_tables = top.tables("springs")
     initial = top.table("initial")
     top.finish()
     if (lattice is None) == (particles is None):
@@ -120,12 +120,12 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
         )
     lattice_shape = None
     if lattice is not None:
-        if springs_table is not None:
+        if springs_tables:
             raise InputError("springs", "[springs] is only for [particles] scenes", "remove it, or use [particles]")
         topology = _lattice_topology(lattice, has_drag=cd is not None)
         lattice_shape = topology.pop("lattice_shape")
     else:
-        topology = _explicit_topology(particles, springs_table, has_drag=cd is not None)
+        topology = _explicit_topology(particles, springs_tables, has_drag=cd is not None)
 
     x = topology.pop("positions")
     v = topology.pop("velocities")
@@ -157,6 +157,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
             integrator=integrator,
             dt=dt,
             lattice_shape=lattice_shape,
+            spring_groups=topology["spring_groups"],
             backend=backend,
         )
     except InputError as exc:  # name the table the bad value came from
@@ -166,6 +167,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     values = dict(ks=ks, kd=kd, cd=cd, gravity=gravity if gravity_on else None)
     values.update(ground_values or {})
     params = check_params(model, Params(**{k: _array(v) for k, v in values.items() if v is not None}))
+
     v = np.where(np.asarray(model.pinned)[:, None], 0.0, v)
     state = State(x=jnp.asarray(x, dtype=float), v=jnp.asarray(v, dtype=float))
     return Scene(
@@ -215,6 +217,7 @@ def _lattice_topology(table: schema.Table, has_drag: bool) -> dict:
         positions=positions,
         velocities=np.zeros_like(positions),
         springs=lattice_springs(shape, sets),
+        spring_groups=[(name, lattice_springs(shape, [name]).shape[0]) for name in sets],
         rest_length=None,
         mass=float(mass),
         pinned=pinned,
@@ -224,7 +227,7 @@ def _lattice_topology(table: schema.Table, has_drag: bool) -> dict:
     )
 
 
-def _explicit_topology(particles: schema.Table, springs_table: schema.Table | None, has_drag: bool) -> dict:
+def _explicit_topology(particles: schema.Table, springs_tables: list, has_drag: bool) -> dict:
     positions = np.asarray(particles.take("x", schema.vectors, required=True), dtype=float)
     count = positions.shape[0]
     velocities = particles.take("v", schema.vectors, default=None)
@@ -244,20 +247,7 @@ def _explicit_topology(particles: schema.Table, springs_table: schema.Table | No
         raise InputError("drag", f"needs 1 or {count} flags", "give one flag per particle or one for all")
     faces = particles.take("faces", schema.index_triples, default=[])
     particles.finish()
-    springs = np.zeros((0, 2), dtype=np.int64)
-    rest_length = None
-    if springs_table is not None:
-        springs = np.asarray(springs_table.take("pairs", schema.index_pairs, required=True), dtype=np.int64).reshape(
-            -1, 2
-        )
-        rest_length = springs_table.take("rest_length", schema.non_negative_values, default=None)
-        if rest_length is not None and np.ndim(rest_length) == 1 and len(rest_length) != springs.shape[0]:
-            raise InputError(
-                "springs.rest_length",
-                f"has {len(rest_length)} values for {springs.shape[0]} springs",
-                "give one per spring",
-            )
-        springs_table.finish()
+    springs, rest_length, groups = _spring_tables(springs_tables)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if faces.size and (faces.min() < 0 or faces.max() >= count):
         raise InputError("particles.faces", f"particle index out of range 0..{count - 1}", "fix the triangle list")
@@ -266,6 +256,7 @@ def _explicit_topology(particles: schema.Table, springs_table: schema.Table | No
         velocities=velocities,
         springs=springs,
         rest_length=rest_length,
+        spring_groups=groups,
         mass=mass,
         pinned=pinned,
         drag=drag,
@@ -273,5 +264,43 @@ def _explicit_topology(particles: schema.Table, springs_table: schema.Table | No
     )
 
 
+def _spring_tables(tables: list) -> tuple:
+    """(pairs (S, 2), rest lengths (S,) or None, groups) from one [springs] table or [[springs]] tables.
+
+    Each [[springs]] table is a named group: `name`, `pairs`, optional `rest_length` (one
+    value or one per pair; default: the pairs' initial distances).
+    """
+    pairs, rests, groups = [], [], []
+    named = len(tables) > 1 or any("name" in table.data for table in tables)
+    for table in tables:
+        name = table.take("name", schema.string, required=named)
+        group = np.asarray(table.take("pairs", schema.index_pairs, required=True), dtype=np.int64).reshape(-1, 2)
+        rest = table.take("rest_length", schema.non_negative_values, default=None)
+        if rest is not None and np.ndim(rest) == 1 and len(rest) != group.shape[0]:
+            raise InputError(
+                f"{table.path}.rest_length",
+                f"has {len(rest)} values for {group.shape[0]} springs",
+                "give one per spring",
+            )
+        table.finish()
+        pairs.append(group)
+        rests.append(rest)
+        if named:
+            groups.append((name, group.shape[0]))
+    if not pairs:
+        return np.zeros((0, 2), dtype=np.int64), None, []
+    springs = np.concatenate(pairs)
+    if all(rest is None for rest in rests):
+        return springs, None, groups
+    if any(rest is None for rest in rests):
+        raise InputError(
+            "springs.rest_length", "given for some groups only", "give it for every [[springs]] table or none"
+        )
+    rest_length = np.concatenate([np.broadcast_to(np.asarray(r, float), (p.shape[0],)) for r, p in zip(rests, pairs)])
+    return springs, rest_length, groups
+
+
 def _array(value):
+    if isinstance(value, dict):  # per spring group
+        return {group: _array(v) for group, v in value.items()}
     return jnp.asarray(np.asarray(value, dtype=float), dtype=float)

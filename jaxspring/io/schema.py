@@ -35,6 +35,18 @@ class Table:
             got = got if len(got) <= 60 else got[:57] + "..."
             raise InputError(self._field(key), f"{bad.problem}, got {got}", bad.fix) from None
 
+    def tables(self, key) -> list[Table]:
+        """An array of tables, [[key]] (one [key] table counts as one); [] when absent."""
+        self.seen.add(key)
+        value = self.data.get(key)
+        if value is None:
+            return []
+        items = value if isinstance(value, list) else [value]
+        return [
+            Table(item, f"{self._field(key)}[{i}]" if isinstance(value, list) else self._field(key))
+            for i, item in enumerate(items)
+        ]
+
     def table(self, key, required=False):
         self.seen.add(key)
         if key not in self.data:
@@ -112,6 +124,15 @@ def non_negative_values(value):
         return v
 
     return values(value, check)
+
+
+def grouped_non_negative_values(value):
+    """Non-negative values, or a table of them by spring group: { stretch = 1000.0, bend = 10.0 }."""
+    if isinstance(value, dict):
+        if not value:
+            raise Bad("must not be an empty table", "give a value per group, e.g. { stretch = 1000.0 }")
+        return {str(group): non_negative_values(v) for group, v in value.items()}
+    return non_negative_values(value)
 
 
 def positive_values(value):

@@ -95,6 +95,9 @@ def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
             topo.create_dataset("faces", data=np.asarray(scene.faces, dtype=np.int32))
         if scene.lattice_shape is not None:
             topo.attrs["lattice_shape"] = np.asarray(scene.lattice_shape, dtype=np.int64)
+        if model.spring_groups:  # names and spring counts, in spring order
+            topo.attrs["spring_group_names"] = [name for name, _ in model.spring_groups]
+            topo.attrs["spring_group_counts"] = np.asarray([n for _, n in model.spring_groups], dtype=np.int64)
         traj = f.create_group("trajectory")
         traj.create_dataset("t", data=np.asarray(trajectory.t))
         traj.create_dataset("x", data=x)
@@ -140,6 +143,12 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             drag = np.asarray(topo["drag"][()], dtype=bool)
             faces = np.asarray(topo["faces"][()]) if "faces" in topo else np.zeros((0, 3), dtype=np.int32)
             lattice = tuple(int(n) for n in topo.attrs["lattice_shape"]) if "lattice_shape" in topo.attrs else None
+            groups = list(
+                zip(
+                    [str(n) for n in topo.attrs.get("spring_group_names", [])],
+                    [int(n) for n in topo.attrs.get("spring_group_counts", [])],
+                )
+            )
             t = np.asarray(f["trajectory/t"][()])
             x = np.asarray(f["trajectory/x"][()])
             v = np.asarray(f["trajectory/v"][()])
@@ -149,7 +158,7 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             raise FileFormatError(
                 f"{path}: incomplete trajectory file ({exc}); re-create it with `jaxspring run`"
             ) from None
-    unknown = sorted(set(params) - set(Params.names()))
+    unknown = sorted({name.partition(".")[0] for name in params} - set(Params.names()))
     if unknown:
         raise FileFormatError(f"{path}: unknown parameter {unknown[0]!r}; this file was written by a newer jaxspring")
     if x.ndim != 3 or x.shape[2] != 3 or x.shape != v.shape or t.shape != (x.shape[0],) or x.shape[1] != mass.shape[0]:
@@ -168,8 +177,10 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             integrator=integrator,
             dt=dt,
             lattice_shape=lattice,
+            spring_groups=groups,
         )
-        scene_params = check_params(model, Params(**{k: jnp.asarray(v, dtype=float) for k, v in params.items()}))
+        values = {k: jnp.asarray(v, dtype=float) for k, v in params.items()}
+        scene_params = check_params(model, Params.from_values(values))
     except InputError as exc:
         raise exc.within(str(path)) from None
     trajectory = Trajectory(x=jnp.asarray(x), v=jnp.asarray(v), t=jnp.asarray(t))

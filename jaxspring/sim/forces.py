@@ -77,7 +77,9 @@ class Springs:
         unit = safe_direction(d, length)
         extension = length - model.rest_length[:, None]
         closing_speed = jnp.sum((v[b] - v[a]) * unit, axis=-1, keepdims=True)
-        magnitude = per_item(params.ks) * extension + per_item(params.kd) * closing_speed
+        magnitude = (
+            per_item(model.per_spring(params.ks)) * extension + per_item(model.per_spring(params.kd)) * closing_speed
+        )
         return magnitude * unit, extension
 
     def force(self, model, params, x, v):
@@ -97,6 +99,7 @@ class Springs:
         """
         with jax.named_scope(self.name):
             shape, offsets = model.lattice
+            ks, kd = model.per_spring(params.ks), model.per_spring(params.kd)
             total = jnp.zeros_like(x)
             start = 0
             for offset in offsets:
@@ -117,7 +120,7 @@ class Springs:
                 unit = safe_direction(d, length)
                 extension = length - per_family(model.rest_length)
                 closing = jnp.sum((v[dst] - v[src]) * unit, axis=0, keepdims=True)
-                f = (per_family(params.ks) * extension + per_family(params.kd) * closing) * unit
+                f = (per_family(ks) * extension + per_family(kd) * closing) * unit
                 total = total + jnp.pad(f, [(0, 0)] + list(zip(lo, hi))) - jnp.pad(f, [(0, 0)] + list(zip(hi, lo)))
                 start += count
             return total
@@ -126,7 +129,7 @@ class Springs:
         with jax.named_scope(self.name):
             a, b = model.springs[:, 0], model.springs[:, 1]
             length = safe_norm(x[b] - x[a])
-            return 0.5 * jnp.sum(params.ks * (length - model.rest_length) ** 2)
+            return 0.5 * jnp.sum(model.per_spring(params.ks) * (length - model.rest_length) ** 2)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,7 +12,7 @@ from ..errors import InputError
 from ..steppers import Stepper, check_backend, select_stepper
 from .forces import TERM_PARAMETERS, TERMS
 from .integrators import Integrator, SemiImplicitEuler, as_integrator
-from .params import NON_NEGATIVE, PARAMETER_INFO, Params
+from .params import NON_NEGATIVE, PARAMETER_INFO, PER_GROUP, Params, split_name
 from .state import State
 
 
@@ -34,6 +34,8 @@ class Model:
         lattice: (shape, offsets) when the springs are whole lattice neighbour families
             in `lattice_springs` order (static); grid steppers then run the springs as
             array shifts instead of scatters (same numbers). None otherwise.
+        spring_groups: ((name, count), ...) (static): the springs in order, as named groups
+            whose ks and kd may differ (`Params.ks = {name: value}`); () is one unnamed group.
         backend: "auto" (default), "jax" or "native": which steppers may run it (static;
             see `jaxspring.steppers.select_stepper`).
         stepper: how its steps run (static), chosen from the backend when the model is
@@ -51,6 +53,7 @@ class Model:
     integrator: Integrator = dataclasses.field(metadata=dict(static=True), default=SemiImplicitEuler())
     dt: float = dataclasses.field(metadata=dict(static=True), default=1e-3)
     lattice: tuple | None = dataclasses.field(metadata=dict(static=True), default=None)
+    spring_groups: tuple = dataclasses.field(metadata=dict(static=True), default=())
     backend: str = dataclasses.field(metadata=dict(static=True), default="auto")
     stepper: Stepper | None = dataclasses.field(metadata=dict(static=True), default=None)
 
@@ -80,6 +83,53 @@ class Model:
 
     def has(self, term: str) -> bool:
         return term in self.terms
+
+    @property
+    def group_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.spring_groups)
+
+    def per_spring(self, value):
+        """A spring parameter as the force reads it: a scalar or (S,) as is; {group: value}
+        concatenated in spring order, shape (S,)."""
+        if not isinstance(value, dict):
+            return value
+        parts = [jnp.broadcast_to(jnp.asarray(value[name]), (count,)) for name, count in self.spring_groups]
+        return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+
+    def per_group(self, value) -> dict:
+        """A spring parameter as {group: value}: a scalar for every group, a (S,) array sliced."""
+        if isinstance(value, dict):
+            return value
+        value, groups, start = jnp.asarray(value), {}, 0
+        for name, count in self.spring_groups:
+            groups[name] = value if value.ndim == 0 else value[start : start + count]
+            start += count
+        return groups
+
+    def parameter_values(self, params: Params) -> dict:
+        """Every parameter by name, with "ks.<group>" / "kd.<group>" entries for each spring group
+        (from a scalar or per-spring value too): what can be fitted, compared or printed."""
+        values = params.to_dict()
+        for base in PER_GROUP:
+            value = getattr(params, base)
+            if value is not None and not isinstance(value, dict) and self.spring_groups:
+                values.update({f"{base}.{group}": v for group, v in self.per_group(value).items()})
+        return values
+
+    def params_with(self, params: Params, values: dict) -> Params:
+        """`params.with_values(values)`, turning ks or kd into per-group values first where a
+        group's value ("ks.<group>") is given.
+
+        Example:
+            >>> model.params_with(params, {"ks.bend": 12.0})
+        """
+        grouped = {split_name(name)[0] for name in values if split_name(name)[1] is not None}
+        unknown = [n for n in values if split_name(n)[1] is not None and split_name(n)[1] not in self.group_names]
+        if unknown:
+            groups = ", ".join(self.group_names) or "none"
+            raise InputError(unknown[0], "names a spring group the scene does not have", f"use one of: {groups}")
+        params = params.replace(**{base: self.per_group(getattr(params, base)) for base in grouped})
+        return params.with_values(values)
 
     def forward_mode(self) -> Model:
         """This model on the pure-JAX backend, for jvp/jacfwd (the native steppers are reverse-mode
@@ -130,6 +180,7 @@ def make_model(
     integrator: Integrator | str = "semi_implicit_euler",
     dt: float = 1e-3,
     lattice_shape=None,
+    spring_groups=None,
     backend: str = "auto",
 ) -> Model:
     """Build and validate a Model.
@@ -147,6 +198,8 @@ def make_model(
         dt: time step [s].
         lattice_shape: the particles' lattice shape when they form one (C order); if
             the springs are whole neighbour families of it, the structured fast path is used.
+        spring_groups: ((name, count), ...) naming consecutive runs of `springs` (their counts
+            sum to S); default: one unnamed group. See `Model.spring_groups`.
         backend: "auto" (default: the fastest stepper that runs the model), "jax" (pure JAX,
             needed for forward mode through a rollout) or "native" (the C++ kernels; "jax"
             with a notice if they are not built). See `jaxspring.steppers.select_stepper`.
@@ -214,6 +267,7 @@ def make_model(
         integrator=integrator,
         dt=float(dt),
         lattice=lattice_layout(springs_np, lattice_shape, count),
+        spring_groups=_check_groups(spring_groups, springs_np.shape[0]),
         backend=check_backend(backend),
     )
 
@@ -264,22 +318,63 @@ def check_params(model: Model, params: Params) -> Params:
             )
     changes = {}
     for name in needed:
-        value = np.asarray(getattr(params, name), dtype=float)
-        _check_finite(name, value)
-        per = PARAMETER_INFO[name][2]
-        allowed = {(): "a scalar"}
-        if name == "gravity":
-            allowed = {(3,): "a 3-vector"}
-        elif per == "spring":
-            allowed[(model.spring_count,)] = f"one value per spring ({model.spring_count})"
-        elif per == "particle":
-            allowed[(model.particle_count,)] = f"one value per particle ({model.particle_count})"
-        if value.shape not in allowed:
-            raise InputError(name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}")
-        if name in NON_NEGATIVE and np.any(value < 0):
-            raise InputError(name, f"must be >= 0, got {value.min():g}", f"set a non-negative {name}")
-        changes[name] = jnp.asarray(value, dtype=float)
+        value = getattr(params, name)
+        if isinstance(value, dict):
+            changes[name] = _check_group_values(model, name, value)
+        else:
+            changes[name] = _check_value(model, name, value, PARAMETER_INFO[name][2])
     return params.replace(**changes)
+
+
+def _check_value(model: Model, name: str, value, per, count=None):
+    """One parameter value checked (finite, shape, sign) and cast to the default float dtype."""
+    value = np.asarray(value, dtype=float)
+    _check_finite(name, value)
+    allowed = {(): "a scalar"}
+    if name == "gravity":
+        allowed = {(3,): "a 3-vector"}
+    elif per == "spring":
+        count = model.spring_count if count is None else count
+        allowed[(count,)] = f"one value per spring ({count})"
+    elif per == "particle":
+        allowed[(model.particle_count,)] = f"one value per particle ({model.particle_count})"
+    if value.shape not in allowed:
+        raise InputError(name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}")
+    if name.partition(".")[0] in NON_NEGATIVE and np.any(value < 0):
+        raise InputError(name, f"must be >= 0, got {value.min():g}", f"set a non-negative {name}")
+    return jnp.asarray(value, dtype=float)
+
+
+def _check_group_values(model: Model, name: str, values: dict) -> dict:
+    """{group: value} for ks or kd: exactly the model's groups, each a scalar or one value per spring of it."""
+    groups = dict(model.spring_groups)
+    if name not in PER_GROUP or not groups:
+        raise InputError(name, "is given per spring group but the scene has no named groups", f"give one {name}")
+    missing, unknown = [g for g in groups if g not in values], [g for g in values if g not in groups]
+    if unknown:
+        raise InputError(
+            f"{name}.{unknown[0]}", "names a spring group the scene does not have", f"use {', '.join(groups)}"
+        )
+    if missing:
+        raise InputError(
+            name, f"has no value for the group {missing[0]!r}", f"give every group a {name}, or one for all"
+        )
+    return {g: _check_value(model, f"{name}.{g}", values[g], "spring", groups[g]) for g in groups}
+
+
+def _check_groups(groups, spring_count: int) -> tuple:
+    if not groups:
+        return ()
+    groups = tuple((str(name), int(count)) for name, count in groups)
+    names = [name for name, _ in groups]
+    for name in names:
+        if not name or "." in name or not name.replace("_", "a").isalnum():
+            raise InputError("springs.name", f"{name!r} is not a group name", "use letters, digits and _")
+    if len(set(names)) != len(names):
+        raise InputError("springs.name", "two spring groups share a name", "give each [[springs]] table its own name")
+    if sum(count for _, count in groups) != spring_count:
+        raise InputError("spring_groups", f"counts do not add up to {spring_count} springs", "count every spring once")
+    return groups
 
 
 def _needer(name: str) -> str:

@@ -11,7 +11,7 @@ from ..errors import InputError
 from ..steppers import check_backend
 from .integrators import as_integrator
 from .model import Model, check_params
-from .params import Params
+from .params import Params, split_name
 from .state import State
 
 
@@ -46,11 +46,24 @@ class Scene:
     description: str = ""
 
     def with_params(self, **values) -> Scene:
-        """A copy with some parameters replaced (validated)."""
-        unknown = [k for k in values if k not in Params.names()]
+        """A copy with some parameters replaced (validated); a spring group's value by its
+        dotted name goes through `with_values`.
+
+        Example:
+            >>> scene.with_params(ks=600.0, kd={"stretch": 2.0, "bend": 0.1})
+        """
+        return self.with_values(values)
+
+    def with_values(self, values: dict) -> Scene:
+        """A copy with parameters replaced by name, "ks" or "ks.<group>" (validated).
+
+        Example:
+            >>> scene.with_values({"ks.bend": 12.0, "cd": 0.02})
+        """
+        unknown = [k for k in values if split_name(k)[0] not in Params.names()]
         if unknown:
             raise InputError(unknown[0], "is not a parameter", f"use one of {', '.join(Params.names())}")
-        return dataclasses.replace(self, params=check_params(self.model, self.params.replace(**values)))
+        return dataclasses.replace(self, params=check_params(self.model, self.model.params_with(self.params, values)))
 
     def with_integrator(self, integrator) -> Scene:
         """A copy that steps with another integrator: an `Integrator` or a name in `INTEGRATORS`.

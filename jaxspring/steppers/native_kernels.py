@@ -179,8 +179,8 @@ def _lattice_inputs(model, params, dtype):
     ground = model.has("ground")
     return (
         model.rest_length.astype(dtype),
-        spring_values(params.ks),
-        spring_values(params.kd),
+        spring_values(model.per_spring(params.ks)),
+        spring_values(model.per_spring(params.kd)),
         model.mass.astype(dtype),
         (~model.pinned).astype(dtype),
         cdm,

@@ -32,7 +32,9 @@ class NativeSprings(Stepper):
         total = jnp.zeros_like(x)
         for term in model.force_terms:
             if term.name == SPRINGS:
-                total = total + spring_force(x, v, model.springs, model.rest_length, params.ks, params.kd)
+                total = total + spring_force(
+                    x, v, model.springs, model.rest_length, model.per_spring(params.ks), model.per_spring(params.kd)
+                )
             else:
                 total = total + term.force(model, params, x, v)
         return total
