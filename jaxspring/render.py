@@ -63,6 +63,8 @@ def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frame
     suffix = out.suffix.lower()
     if suffix not in (".png", ".gif"):
         raise InputError("out", f"{str(out)!r} is neither .png nor .gif", "name the output file.png or file.gif")
+    if isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1:
+        raise InputError("max_frames", f"must be an integer >= 1, got {max_frames!r}", "give a positive frame count")
     x = np.asarray(trajectory.x)[..., _TO_PLOT]
     t = np.asarray(trajectory.t)
     frames = x.shape[0]

@@ -1,11 +1,17 @@
-"""Inputs a user did not make with the same settings: every documented workflow must accept them.
+"""Inputs a user did not make with the same settings, and inputs that are plainly wrong.
 
-Each test is a reproducer of a measured failure; what it asserts is checked independently
-(the file's own dtype, a rollout of the cast state, the fit's loss history).
+Each test is a reproducer of a measured failure. Documented workflows must accept what they
+are given; what they produce is checked independently (the file's own dtype, a rollout of the
+cast state, the fit's loss history). Wrong inputs must be refused with exit code 2 and one line
+naming the problem and the fix, with nothing written and every input untouched (or, in Python,
+one `InputError`).
 """
 
+import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import h5py
 import jax.numpy as jnp
@@ -13,6 +19,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
+from jaxspring.cli import main
 
 
 def _jaxspring(*args, cwd):
@@ -77,3 +84,158 @@ def test_rollout_promotes_a_float32_state_on_a_float64_model(scenes):
     np.testing.assert_array_equal(np.asarray(got.x), np.asarray(want.x))
     end = js.final_state(scene.model, scene.params, low, steps=50)
     np.testing.assert_array_equal(np.asarray(end.x), np.asarray(want.x[-1]))
+
+
+# --- Refusals: exit code 2, one line naming the problem and the fix, nothing written or changed ---
+
+UNWRITABLE = Path("/sys")  # no process may create a file here, root included
+needs_unwritable = pytest.mark.skipif(not UNWRITABLE.is_dir(), reason="needs Linux /sys")
+
+
+@pytest.fixture(scope="module")
+def inputs(float32_recording, tmp_path_factory):
+    """A folder with a scene (c.toml), a recording (R.h5) and a small synthetic experiment (exp.toml)."""
+    folder = tmp_path_factory.mktemp("inputs")
+    (folder / "c.toml").write_bytes((Path(js.__file__).parents[1] / "scenes" / "chain.toml").read_bytes())
+    shutil.copy(float32_recording / "rec.h5", folder / "R.h5")
+    (folder / "exp.toml").write_text(
+        'scene = "c.toml"\n[target]\nsteps = 20\nsave_every = 10\n[fit]\nparams = ["ks"]\niterations = 2\n'
+    )
+    return folder
+
+
+def _snapshot(folder):
+    return {path.name: path.read_bytes() for path in sorted(folder.iterdir()) if path.is_file()}
+
+
+def _refused(capsys, folder, *argv, naming=()):
+    """Run the CLI in-process; assert exit 2, one line on stderr naming `naming`, and `folder` unchanged."""
+    before = _snapshot(folder)
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jaxspring: error: "), err
+    for word in naming:
+        assert word in lines[0], lines[0]
+    assert _snapshot(folder) == before  # nothing written, no input touched
+    return lines[0]
+
+
+def _non_utf8_variants(text: bytes):
+    """The file with one byte 0x80-0xFF in a comment, in a string, at the start; and random bytes."""
+    rng = np.random.default_rng(17)
+    junk = rng.integers(0, 256, 400, dtype=np.uint8).tobytes()
+    return {
+        "comment": text.replace(b"\n", b"\n# \x80\n", 1),
+        "string": text.replace(b'"', b'"\xe9', 1),
+        "start": b"\xff" + text,
+        "random": junk,
+    }
+
+
+@pytest.mark.parametrize("where", ["comment", "string", "start", "random"])
+def test_scene_and_experiment_files_that_are_not_utf8(inputs, tmp_path, capsys, where):
+    scene = tmp_path / "bad.toml"
+    scene.write_bytes(_non_utf8_variants((inputs / "c.toml").read_bytes())[where])
+    with pytest.raises(js.InputError, match="not UTF-8; save the file as UTF-8"):
+        js.load_scene(scene)
+    _refused(capsys, tmp_path, "run", scene, "--out", tmp_path / "bad.h5", naming=["bad.toml", "UTF-8"])
+
+    experiment = tmp_path / "bad_exp.toml"
+    experiment.write_bytes(_non_utf8_variants((inputs / "exp.toml").read_bytes())[where])
+    with pytest.raises(js.InputError, match="not UTF-8"):
+        js.load_experiment(experiment)
+    _refused(capsys, tmp_path, "fit", experiment, naming=["bad_exp.toml", "UTF-8"])
+
+
+def test_outputs_that_would_overwrite_an_input_are_refused(inputs, tmp_path, capsys):
+    for name in ("c.toml", "R.h5"):
+        shutil.copy(inputs / name, tmp_path / name)
+    scene, recording = tmp_path / "c.toml", tmp_path / "R.h5"
+    os.link(scene, tmp_path / "hard.h5")  # another name for the same file
+    (tmp_path / "sub").mkdir()  # for sub/../R.h5, the same path spelt differently
+    (tmp_path / "target.toml").write_text('scene = "c.toml"\n[target]\nfile = "R.h5"\n[fit]\nparams = ["ks"]\n')
+    run = ["run", scene, "--steps", 20, "--save-every", 10]
+    _refused(capsys, tmp_path, *run, "--out", scene, naming=["--out", "input"])
+    _refused(capsys, tmp_path, *run, "--out", tmp_path / "hard.h5", naming=["--out", "input"])
+    _refused(capsys, tmp_path, "render", recording, "--out", recording, naming=["--out"])
+    fit = ["fit", "--target", recording, "--params", "ks", "--iterations", 1]
+    _refused(capsys, tmp_path, *fit, "--out", recording, naming=["--out", "input"])
+    _refused(capsys, tmp_path, *fit, "--out", tmp_path / "sub" / ".." / "R.h5", naming=["--out", "input"])
+    _refused(capsys, tmp_path, "fit", tmp_path / "target.toml", "--out", recording, naming=["--out", "input"])
+
+
+def test_fit_file_must_be_h5_so_the_plot_beside_it_is_another_file(inputs, capsys):
+    _refused(capsys, inputs, "fit", inputs / "exp.toml", "--out", inputs / "res.png", naming=["--out", ".h5"])
+
+
+@needs_unwritable
+def test_outputs_in_a_folder_or_an_unwritable_place(inputs, capsys):
+    recording = inputs / "R.h5"
+    run = ["run", inputs / "c.toml", "--steps", 20, "--save-every", 10]
+    _refused(capsys, inputs, *run, "--out", inputs, naming=["--out", "is a folder"])
+    _refused(capsys, inputs, *run, "--out", UNWRITABLE / "c.h5", naming=["--out", "cannot write"])
+    _refused(capsys, inputs, "render", recording, "--out", inputs, naming=["--out", "is a folder"])
+    _refused(capsys, inputs, "render", recording, "--out", UNWRITABLE / "R.gif", naming=["--out", "cannot write"])
+    _refused(capsys, inputs, "demo", "--out-dir", inputs / "c.toml", naming=["--out-dir", "is a file"])
+    _refused(capsys, inputs, "demo", "--out-dir", UNWRITABLE / "demo", naming=["--out-dir", "cannot create"])
+
+
+@pytest.mark.parametrize("count", [0, -5])
+def test_render_needs_at_least_one_frame(inputs, capsys, count):
+    _refused(
+        capsys, inputs, "render", inputs / "R.h5", "--out", inputs / "R.gif", "--max-frames", count,
+        naming=["max_frames", f"got {count}"],
+    )  # fmt: skip
+
+
+def test_step_counts_beyond_the_limit_are_refused_up_front(inputs, capsys):
+    huge = 2**32
+    line = _refused(
+        capsys, inputs, "run", inputs / "c.toml", "--steps", huge, "--save-every", huge, "--out", inputs / "o.h5",
+        naming=["--steps", "1,000,000,000"],
+    )  # fmt: skip
+    assert f"{huge:,}" in line
+
+
+@pytest.mark.parametrize("noise", ["nan", "inf", "-0.1"])
+def test_fit_noise_must_be_finite_and_non_negative(inputs, capsys, noise):
+    _refused(
+        capsys, inputs, "fit", inputs / "exp.toml", "--noise", noise, "--out", inputs / "exp.fit.h5",
+        naming=["--noise", "finite"],
+    )  # fmt: skip
+
+
+# --- Python API: InputError naming the argument ---
+
+
+@pytest.mark.parametrize(
+    "arguments, field",
+    [({"steps": 2.5}, "steps"), ({"steps": "10"}, "steps"), ({"steps": 10, "save_every": True}, "save_every")],
+)
+def test_rollout_counts_are_integers(scenes, arguments, field):
+    scene = scenes["chain"]
+    with pytest.raises(js.InputError, match=f"^{field}: must be an integer"):
+        js.rollout(scene.model, scene.params, scene.state, **arguments)
+
+
+def test_rollout_of_zero_steps_is_frame_0(scenes):
+    scene = scenes["chain"]
+    traj = js.rollout(scene.model, scene.params, scene.state, steps=0, save_every=5)
+    assert traj.x.shape == (1, *scene.state.x.shape) and traj.t.shape == (1,) and float(traj.t[0]) == 0.0
+    np.testing.assert_array_equal(np.asarray(traj.x[0]), np.asarray(scene.state.x))
+    np.testing.assert_array_equal(np.asarray(traj.v[0]), np.asarray(scene.state.v))
+    end = js.final_state(scene.model, scene.params, scene.state, steps=0)
+    np.testing.assert_array_equal(np.asarray(end.x), np.asarray(scene.state.x))
+
+
+def test_scene_changes_that_are_not_numbers(scenes):
+    scene = scenes["chain"]
+    with pytest.raises(js.InputError, match="^dt: must be a number, got 'abc'"):
+        scene.with_dt("abc")
+    with pytest.raises(js.InputError, match="^ks: must be a number or an array of numbers, got 'abc'"):
+        scene.with_params(ks="abc")
+    springs = scene.model.spring_count
+    with pytest.raises(js.InputError, match=rf"^ks: has shape \({springs}, 1\); give a scalar or one value per spring"):
+        scene.with_params(ks=np.full((springs, 1), 1000.0))

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 from ..sim.integrators import INTEGRATORS
@@ -48,8 +50,8 @@ def parse_sets(items) -> dict:
 
 
 def prepare_scene(args):
-    from ..errors import InputError
     from ..io.scene import load_scene
+    from ..sim.rollout import frame_count, step_count
 
     scene = load_scene(args.scene)
     if args.integrator:
@@ -65,21 +67,48 @@ def prepare_scene(args):
         return scene, None, None
     steps = scene.steps if args.steps is None else args.steps
     save_every = scene.save_every if args.save_every is None else args.save_every
-    if save_every < 1:
-        raise InputError("--save-every", f"must be >= 1, got {save_every}", "give a positive stride")
-    if steps < 1:
-        raise InputError("--steps", f"must be >= 1, got {steps}", "give a positive number of steps")
-    if steps % save_every:
-        raise InputError("--steps", f"{steps} is not a multiple of --save-every {save_every}", "make it one")
+    steps = step_count(steps, "--steps", minimum=1)
+    frame_count(steps, save_every, fields=("--steps", "--save-every"))
     return scene, steps, save_every
 
 
-def check_out_folder(path: Path):
+def check_output(out: Path, inputs=(), flag="--out"):
+    """Refuse, before any work, an output that is a folder, lies in a missing or unwritable
+    folder, or is one of the command's `inputs` (paths; None is skipped)."""
     from ..errors import InputError
 
-    folder = path.parent if str(path.parent) else Path(".")
+    if out.is_dir():
+        raise InputError(flag, f"{str(out)!r} is a folder", "give a file name")
+    folder = out.parent
     if not folder.is_dir():
-        raise InputError("--out", f"folder {str(folder)!r} does not exist", "create it or choose another path")
+        raise InputError(flag, f"folder {str(folder)!r} does not exist", "create it or choose another path")
+    check_writable(folder, flag)
+    for source in inputs:
+        if source is not None and same_file(out, Path(source)):
+            raise InputError(flag, f"{str(out)!r} is also an input of this command", "give the output another name")
+
+
+def check_writable(folder: Path, flag: str):
+    """Refuse a folder this process cannot create a file in (tried, not guessed from permissions)."""
+    from ..errors import InputError
+
+    try:
+        with tempfile.NamedTemporaryFile(prefix=".jaxspring-check.", dir=folder):
+            pass
+    except OSError as exc:
+        raise InputError(
+            flag, f"cannot write in folder {str(folder)!r} ({exc.strerror})", "choose another folder"
+        ) from None
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file: equal once resolved, or the same existing file (a hard link)."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):

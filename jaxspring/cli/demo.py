@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .common import add_common, render_with_progress, simulate_and_save, summary
+from .common import add_common, check_writable, render_with_progress, simulate_and_save, summary
 
 
 def add_parser(sub):
@@ -16,10 +16,19 @@ def add_parser(sub):
 
 
 def command(args):
+    from ..errors import InputError
     from ..io.scene import builtin_scenes, load_scene
 
     folder = Path(args.out_dir)
-    folder.mkdir(parents=True, exist_ok=True)
+    if folder.exists() and not folder.is_dir():
+        raise InputError("--out-dir", f"{str(folder)!r} is a file", "give a folder name")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(
+            "--out-dir", f"cannot create {str(folder)!r} ({exc.strerror})", "choose another place"
+        ) from None
+    check_writable(folder, "--out-dir")
     start = time.perf_counter()
     rows = []
     for name in builtin_scenes():

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..steppers import BACKENDS
-from .common import BACKEND_HELP, check_out_folder, parse_sets
+from .common import BACKEND_HELP, check_output, parse_sets
 
 
 def add_parser(sub):
@@ -74,8 +75,10 @@ def _fit_problem(args):
     }
     settings = dataclasses.replace(experiment.settings, **changes).validate()
     if args.noise is not None:
-        if args.noise < 0:
-            raise InputError("--noise", "must be >= 0", "give a relative noise level such as 0.01")
+        if not (math.isfinite(args.noise) and args.noise >= 0):
+            raise InputError(
+                "--noise", f"must be finite and >= 0, got {args.noise}", "give a relative level such as 0.01"
+            )
         experiment = experiment.replace(noise=args.noise)
     if args.target:
         observations = observations_from_file(experiment.scene, args.target)
@@ -110,11 +113,18 @@ def command(args):
 
     if args.checkpoint_every < 1:
         raise InputError("--checkpoint-every", "must be >= 1", "give a positive number of iterations")
+    default = Path(args.experiment).stem if args.experiment else Path(args.target or "fit").stem
+    out = Path(args.out or f"{default}.fit.h5")
+    if out.suffix.lower() != ".h5":
+        raise InputError(
+            "--out", f"{str(out)!r} does not end in .h5", "name the fit file NAME.h5 (the plot goes beside it)"
+        )
+    plot = out.with_suffix(".png")
     experiment, observations, names, init, settings, config = _fit_problem(args)
     scene = experiment.scene
-    default = Path(args.experiment).stem if args.experiment else Path(args.target).stem
-    out = Path(args.out or f"{default}.fit.h5")
-    check_out_folder(out)
+    inputs = [args.experiment, args.target, experiment.target_file]
+    for path in (out, plot):
+        check_output(path, inputs)
     progress = load_fit_progress(out, config, names) if args.resume else None
     present = scene.model.parameter_values(scene.params)
     initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
@@ -173,6 +183,6 @@ def command(args):
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    plot = plot_fit(result, out.with_suffix(".png"))
+    plot_fit(result, plot)
     print(result.table())
     print(f"wrote {out} and {plot}")

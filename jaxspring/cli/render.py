@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import check_out_folder, render_with_progress
+from .common import check_output, render_with_progress
 
 
 def add_parser(sub):
@@ -21,6 +21,6 @@ def command(args):
 
     scene, trajectory = load_trajectory(args.file)
     out = Path(args.out) if args.out else Path(args.file).with_suffix(".gif")
-    check_out_folder(out)
+    check_output(out, inputs=[args.file])
     render_with_progress(scene, trajectory, out, args.frame, args.max_frames, args.quiet, f"render {out.name}")
     print(f"wrote {out}")

@@ -9,7 +9,7 @@ from .common import (
     BACKEND_HELP,
     INTEGRATOR_HELP,
     add_common,
-    check_out_folder,
+    check_output,
     prepare_scene,
     simulate_and_save,
     summary,
@@ -32,8 +32,10 @@ def add_parser(sub):
 
 
 def command(args):
+    from ..io.scene import resolve_scene_path
+
     scene, steps, save_every = prepare_scene(args)
     out = Path(args.out or f"{scene.name}.h5")
-    check_out_folder(out)
+    check_output(out, inputs=[resolve_scene_path(args.scene)])
     result = simulate_and_save(scene, steps, save_every, out, args.quiet)
     print(summary(scene, result, out))

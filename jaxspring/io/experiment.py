@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from pathlib import Path
 
 from ..errors import InputError
@@ -89,11 +88,7 @@ def load_experiment(path) -> Experiment:
     path = Path(path)
     if not path.is_file():
         raise InputError("experiment", f"file {str(path)!r} not found", "give a path to an experiment TOML file")
-    try:
-        with open(path, "rb") as handle:
-            document = tomllib.load(handle)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError("toml", f"not valid TOML ({exc})", "fix the syntax", source=str(path)) from None
+    document = schema.read_toml(path, "experiment")
     try:
         return _experiment_from_dict(document, path)
     except InputError as exc:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -64,13 +63,7 @@ def load_scene(path_or_name) -> Scene:
         >>> scene = js.load_scene("jelly")          # built-in by name
     """
     path = resolve_scene_path(path_or_name)
-    try:
-        with open(path, "rb") as handle:
-            document = tomllib.load(handle)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError("toml", f"not valid TOML ({exc})", "fix the syntax", source=str(path)) from None
-    except OSError as exc:
-        raise InputError("scene", f"cannot read ({exc.strerror})", "check the path", source=str(path)) from None
+    document = schema.read_toml(path, "scene")
     try:
         return scene_from_dict(document, default_name=path.stem)
     except InputError as exc:

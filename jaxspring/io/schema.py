@@ -8,9 +8,35 @@ check function (below) that turns the value into what the loader needs or raises
 from __future__ import annotations
 
 import math
+import tomllib
+from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+
+
+def read_toml(path: Path, what: str) -> dict:
+    """The parsed contents of a TOML file; unreadable bytes, bad UTF-8 or bad syntax raise one `InputError`.
+
+    `what` names the file's kind in the message ("scene", "experiment").
+
+    Example:
+        >>> document = read_toml(Path("scenes/chain.toml"), "scene")
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(what, f"cannot read ({exc.strerror})", "check the path", source=str(path)) from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        problem = f"byte 0x{data[exc.start]:02x} on line {line} is not UTF-8"
+        raise InputError("toml", problem, "save the file as UTF-8 text", source=str(path)) from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError("toml", f"not valid TOML ({exc})", "fix the syntax", source=str(path)) from None
 
 
 class Table:

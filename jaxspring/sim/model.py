@@ -327,8 +327,14 @@ def check_params(model: Model, params: Params) -> Params:
 
 
 def _check_value(model: Model, name: str, value, per, count=None):
-    """One parameter value checked (finite, shape, sign) and cast to the default float dtype."""
-    value = np.asarray(value, dtype=float)
+    """One parameter value checked (numeric, finite, shape, sign) and cast to the default float dtype."""
+    try:
+        value = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        got = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        raise InputError(
+            name, f"must be a number or an array of numbers, got {got}", f"give a numeric {name}"
+        ) from None
     _check_finite(name, value)
     allowed = {(): "a scalar"}
     if name == "gravity":

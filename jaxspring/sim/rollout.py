@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +26,8 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
         model: static structure (topology, force terms, integrator, dt).
         params: physical parameters (see `Params`).
         state: initial state, x and v of shape (N, 3).
-        steps: number of time steps; a multiple of `save_every`.
+        steps: number of time steps (an int, 0 to `MAX_STEPS`); a multiple of `save_every`; 0 gives
+            frame 0 only.
         save_every: keep one frame every this many steps.
         checkpoint: reverse-mode memory against time. None (default): keep every
             step's intermediate values, the fastest gradient, memory ~ steps. "sqrt":
@@ -42,6 +44,8 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
     """
     frames = frame_count(steps, save_every)
     state = _in_model_precision(model, state)
+    if frames == 0:  # frame 0 only
+        return Trajectory(x=state.x[None], v=state.v[None], t=jnp.zeros(1, state.x.dtype))
     segment = _segment_length(checkpoint, frames * save_every)
     if segment is None:
         _, x, v = simulate(model, params, state, frames, save_every)
@@ -61,7 +65,11 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
     Example:
         >>> end = js.final_state(scene.model, scene.params, scene.state, steps=1000)
     """
-    end, _, _ = simulate(model, params, _in_model_precision(model, state), 1, int(steps))
+    steps = step_count(steps, "steps", minimum=0)
+    state = _in_model_precision(model, state)
+    if steps == 0:
+        return state
+    end, _, _ = simulate(model, params, state, 1, steps)
     return end
 
 
@@ -75,15 +83,48 @@ def _in_model_precision(model: Model, state: State) -> State:
     return State(x=jnp.asarray(state.x, dtype), v=jnp.asarray(state.v, dtype))
 
 
-def frame_count(steps, save_every) -> int:
-    steps, save_every = int(steps), int(save_every)
-    if save_every < 1:
-        raise InputError("save_every", f"must be >= 1, got {save_every}", "save at least every step")
-    if steps < 0 or steps % save_every:
+MAX_STEPS = 10**9
+"""The most time steps one call takes: far beyond any scene, and it stops a typo or an
+overflowing count (2**32) before the scan is built."""
+
+
+def step_count(value, field: str, minimum: int) -> int:
+    """`value` as an int in [minimum, MAX_STEPS]; floats, strings and bools raise `InputError`.
+
+    Example:
+        >>> step_count(100, "steps", minimum=0)
+        100
+    """
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        count = operator.index(value)
+    except TypeError:
         raise InputError(
-            "steps",
-            f"{steps} is not a non-negative multiple of save_every={save_every}",
-            "choose steps divisible by save_every",
+            field, f"must be an integer, got {value!r}", f"give a whole number such as {field}=100"
+        ) from None
+    if count < minimum:
+        raise InputError(field, f"must be >= {minimum}, got {count}", f"give {field} >= {minimum}")
+    if count > MAX_STEPS:
+        raise InputError(field, f"must be at most {MAX_STEPS:,}, got {count:,}", "split the run into shorter ones")
+    return count
+
+
+def frame_count(steps, save_every, fields=("steps", "save_every")) -> int:
+    """Frames after frame 0 of a rollout of `steps` steps saving every `save_every`-th; both checked.
+
+    `fields` names the two values in an error (e.g. the CLI's "--steps", "--save-every").
+
+    Example:
+        >>> frame_count(1000, 10)
+        100
+    """
+    steps, save_every = step_count(steps, fields[0], minimum=0), step_count(save_every, fields[1], minimum=1)
+    if steps % save_every:
+        raise InputError(
+            fields[0],
+            f"{steps} is not a multiple of {fields[1]}={save_every}",
+            f"choose {fields[0]} divisible by {fields[1]}",
         )
     return steps // save_every
 

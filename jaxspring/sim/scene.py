@@ -79,7 +79,12 @@ class Scene:
 
     def with_dt(self, dt: float) -> Scene:
         """A copy that steps with another dt [s]."""
-        dt = float(dt)
+        try:
+            if isinstance(dt, (str, bytes, bool)):
+                raise TypeError
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise InputError("dt", f"must be a number, got {dt!r}", "give a time step in seconds, e.g. 0.001") from None
         if not (math.isfinite(dt) and dt > 0):
             raise InputError("dt", f"must be a finite number > 0, got {dt}", "give a positive time step")
         return dataclasses.replace(self, model=self.model.replace(dt=dt))
