@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..sim.model import check_params, make_model
+from ..sim.checks import check_params
+from ..sim.model import make_model
 from ..sim.params import Params
 from ..sim.scene import Scene
 from ..sim.state import State

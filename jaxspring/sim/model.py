@@ -10,9 +10,10 @@ import numpy as np
 
 from ..errors import InputError
 from ..steppers import Stepper, check_backend, select_stepper
+from .checks import check_finite, check_groups, flag_mask
 from .forces import TERM_PARAMETERS, TERMS
 from .integrators import Integrator, SemiImplicitEuler, as_integrator
-from .params import NON_NEGATIVE, PARAMETER_INFO, PER_GROUP, Params, split_name
+from .params import PER_GROUP, Params, split_name
 from .state import State
 
 
@@ -217,7 +218,7 @@ def make_model(
             raise InputError("mass", "a scalar mass needs `positions` to know N", "pass one mass per particle")
         mass_np = np.full(positions.shape[0], float(mass_np))
     count = mass_np.shape[0]
-    _check_finite("mass", mass_np)
+    check_finite("mass", mass_np)
     if np.any(mass_np <= 0):
         raise InputError("mass", f"must be > 0, got {mass_np.min():g}", "give every particle a positive mass")
     if springs_np.size and (springs_np.min() < 0 or springs_np.max() >= count):
@@ -240,11 +241,11 @@ def make_model(
         rest_np = np.sqrt(np.sum(d * d, axis=-1))
     else:
         rest_np = np.broadcast_to(np.asarray(rest_length, dtype=float), (springs_np.shape[0],)).copy()
-    _check_finite("rest_length", rest_np)
+    check_finite("rest_length", rest_np)
     if np.any(rest_np < 0):
         raise InputError("rest_length", "must be >= 0", "give non-negative rest lengths")
-    pinned_np = _mask("pinned", pinned, count, default=False)
-    drag_np = _mask("drag", drag, count, default=False)
+    pinned_np = flag_mask("pinned", pinned, count, default=False)
+    drag_np = flag_mask("drag", drag, count, default=False)
     integrator = as_integrator(integrator)
     if not (np.isfinite(dt) and dt > 0):
         raise InputError("dt", f"must be a finite number > 0, got {dt}", "set a positive time step")
@@ -267,7 +268,7 @@ def make_model(
         integrator=integrator,
         dt=float(dt),
         lattice=lattice_layout(springs_np, lattice_shape, count),
-        spring_groups=_check_groups(spring_groups, springs_np.shape[0]),
+        spring_groups=check_groups(spring_groups, springs_np.shape[0]),
         backend=check_backend(backend),
     )
 
@@ -298,116 +299,3 @@ def lattice_layout(springs: np.ndarray, shape, count: int):
         offsets.append(offset)
         start = end
     return shape, tuple(offsets)
-
-
-def check_params(model: Model, params: Params) -> Params:
-    """Validate `params` against `model`: present where needed, absent otherwise, shapes, signs.
-
-    Returns the params with values cast to the default float dtype.
-    """
-    needed = set(model.required_parameters())
-    for name in Params.names():
-        value = getattr(params, name)
-        if name in needed and value is None:
-            raise InputError(name, f"the scene's {_needer(name)} term needs it", f"set {name}")
-        if name not in needed and value is not None:
-            raise InputError(
-                name,
-                f"the scene has no {_needer(name)} term",
-                f"remove {name}, or add the {_needer(name)} term to the scene",
-            )
-    changes = {}
-    for name in needed:
-        value = getattr(params, name)
-        if isinstance(value, dict):
-            changes[name] = _check_group_values(model, name, value)
-        else:
-            changes[name] = _check_value(model, name, value, PARAMETER_INFO[name][2])
-    return params.replace(**changes)
-
-
-def _check_value(model: Model, name: str, value, per, count=None):
-    """One parameter value checked (numeric, finite, shape, sign) and cast to the default float dtype."""
-    try:
-        value = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        got = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
-        raise InputError(
-            name, f"must be a number or an array of numbers, got {got}", f"give a numeric {name}"
-        ) from None
-    _check_finite(name, value)
-    allowed = {(): "a scalar"}
-    if name == "gravity":
-        allowed = {(3,): "a 3-vector"}
-    elif per == "spring":
-        count = model.spring_count if count is None else count
-        allowed[(count,)] = f"one value per spring ({count})"
-    elif per == "particle":
-        allowed[(model.particle_count,)] = f"one value per particle ({model.particle_count})"
-    if value.shape not in allowed:
-        raise InputError(name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}")
-    if name.partition(".")[0] in NON_NEGATIVE and np.any(value < 0):
-        raise InputError(name, f"must be >= 0, got {value.min():g}", f"set a non-negative {name}")
-    return jnp.asarray(value, dtype=float)
-
-
-def _check_group_values(model: Model, name: str, values: dict) -> dict:
-    """{group: value} for ks or kd: exactly the model's groups, each a scalar or one value per spring of it."""
-    groups = dict(model.spring_groups)
-    if name not in PER_GROUP or not groups:
-        raise InputError(name, "is given per spring group but the scene has no named groups", f"give one {name}")
-    missing, unknown = [g for g in groups if g not in values], [g for g in values if g not in groups]
-    if unknown:
-        raise InputError(
-            f"{name}.{unknown[0]}", "names a spring group the scene does not have", f"use {', '.join(groups)}"
-        )
-    if missing:
-        raise InputError(
-            name, f"has no value for the group {missing[0]!r}", f"give every group a {name}, or one for all"
-        )
-    return {g: _check_value(model, f"{name}.{g}", values[g], "spring", groups[g]) for g in groups}
-
-
-def _check_groups(groups, spring_count: int) -> tuple:
-    if not groups:
-        return ()
-    groups = tuple((str(name), int(count)) for name, count in groups)
-    names = [name for name, _ in groups]
-    for name in names:
-        if not name or "." in name or not name.replace("_", "a").isalnum():
-            raise InputError("springs.name", f"{name!r} is not a group name", "use letters, digits and _")
-    if len(set(names)) != len(names):
-        raise InputError("springs.name", "two spring groups share a name", "give each [[springs]] table its own name")
-    if sum(count for _, count in groups) != spring_count:
-        raise InputError("spring_groups", f"counts do not add up to {spring_count} springs", "count every spring once")
-    return groups
-
-
-def _needer(name: str) -> str:
-    for term, names in TERM_PARAMETERS.items():
-        if name in names:
-            return term
-    return name
-
-
-def _check_finite(name, value):
-    if not np.all(np.isfinite(value)):
-        raise InputError(name, "contains NaN or infinity", "give finite numbers")
-
-
-def _mask(name, value, count, default):
-    if value is None:
-        return np.full(count, default)
-    if isinstance(value, bool):
-        return np.full(count, value)
-    arr = np.asarray(value)
-    if arr.dtype == bool:
-        if arr.shape != (count,):
-            raise InputError(name, f"mask has shape {arr.shape}, expected ({count},)", "give one flag per particle")
-        return arr.copy()
-    idx = arr.astype(np.int64).reshape(-1)
-    if idx.size and (idx.min() < 0 or idx.max() >= count):
-        raise InputError(name, f"particle index out of range 0..{count - 1}", "fix the index list")
-    mask = np.zeros(count, dtype=bool)
-    mask[idx] = True
-    return mask

@@ -9,8 +9,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..steppers import check_backend
+from .checks import check_params
 from .integrators import as_integrator
-from .model import Model, check_params
+from .model import Model
 from .params import Params, split_name
 from .state import State
 
