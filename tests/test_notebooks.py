@@ -57,7 +57,7 @@ EXPECTED = {
 }
 
 CHECK = re.compile(r"^check (\S+): (.*)$", re.MULTILINE)
-MACHINE_PATHS = ("/work/", "/tmp/", "/home/", "/Users/", "/root/")
+MACHINE_PATHS = tuple(f"/{folder}/" for folder in ("work", "tmp", "home", "Users", "root"))
 
 
 def outputs(notebook):

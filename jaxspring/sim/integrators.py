@@ -156,19 +156,20 @@ def backward_euler(force, mass, free, x, v, dt, settings: NewtonSettings = NEWTO
 class Integrator:
     """A time integrator: a configured, hashable object whose `step` advances (x, v) by dt.
 
-    Subclasses set `name`, `order`, `explicit` and `description`, and implement
-    `step(force, mass, free, x, v, dt) -> (x', v')` (see the module docstring). A
-    model holds one as its static `integrator`; scene files name one (`INTEGRATORS`
-    maps each name to its default instance).
+    Subclasses set `name`, `order`, `explicit` and `description`, and either `function`
+    (a step function of this module) or their own `step(force, mass, free, x, v, dt) ->
+    (x', v')` (see the module docstring). A model holds one as its static `integrator`;
+    scene files name one (`INTEGRATORS` maps each name to its default instance).
     """
 
     name: str = ""
     order: int = 0
     explicit: bool = True
     description: str = ""
+    function = None
 
     def step(self, force, mass, free, x, v, dt):
-        raise NotImplementedError
+        return type(self).function(force, mass, free, x, v, dt)
 
     def __str__(self) -> str:
         return self.name
@@ -185,9 +186,7 @@ class SemiImplicitEuler(Integrator):
     name = "semi_implicit_euler"
     order = 1
     description = "the seed's; symplectic, 1 force/step"
-
-    def step(self, force, mass, free, x, v, dt):
-        return semi_implicit_euler(force, mass, free, x, v, dt)
+    function = staticmethod(semi_implicit_euler)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,9 +200,7 @@ class Verlet(Integrator):
     name = "verlet"
     order = 2
     description = "velocity Verlet; symplectic, 2 forces/step"
-
-    def step(self, force, mass, free, x, v, dt):
-        return verlet(force, mass, free, x, v, dt)
+    function = staticmethod(verlet)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,9 +214,7 @@ class RK4(Integrator):
     name = "rk4"
     order = 4
     description = "classic Runge-Kutta; 4 forces/step, slowly loses energy"
-
-    def step(self, force, mass, free, x, v, dt):
-        return rk4(force, mass, free, x, v, dt)
+    function = staticmethod(rk4)
 
 
 @dataclasses.dataclass(frozen=True)
