@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..fit.results import FitProgress, FitResult
-from ..io.trajectory import atomic_path
+from .trajectory import atomic_path, open_hdf5
 
 FIT_FORMAT = "jaxspring.fit"
 FIT_FORMAT_VERSION = 1
@@ -75,11 +75,7 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
     path = Path(path)
     if not path.is_file():
         raise InputError("--resume", f"{path} does not exist", "run the fit once without --resume")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise FileFormatError(f"{path}: not a readable HDF5 file; delete it and fit again without --resume") from None
-    with f:
+    with open_hdf5(path, "delete it and fit again without --resume") as f:
         if f.attrs.get("format") != FIT_FORMAT:
             raise FileFormatError(f"{path}: not a jaxspring fit file; choose another --out")
         saved = json.loads(f.attrs["config"])

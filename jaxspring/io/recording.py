@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 
 from ..errors import FileFormatError, InputError
-from .trajectory import atomic_path
+from .trajectory import atomic_path, open_hdf5
 
 RECORDING_FORMAT = "jaxspring.recording"
 FORMAT_VERSION = 1
@@ -134,13 +134,7 @@ def load_recording(path) -> Recording:
 
 
 def _load_hdf5(path: Path) -> Recording:
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise FileFormatError(
-            f"{path}: not a readable HDF5 file (truncated or another format); give a recording written by js.save_recording"
-        ) from None
-    with f:
+    with open_hdf5(path, "give a recording written by js.save_recording") as f:
         kind = f.attrs.get("format")
         if isinstance(kind, bytes):
             kind = kind.decode("utf-8", "replace")

@@ -63,6 +63,15 @@ def atomic_path(path):
             os.unlink(tmp)
 
 
+def open_hdf5(path: Path, remedy: str) -> h5py.File:
+    """`path` opened for reading, or a one-line `FileFormatError` ending in `remedy` when it is
+    not a readable HDF5 file (truncated, or another format)."""
+    try:
+        return h5py.File(path, "r")
+    except OSError:
+        raise FileFormatError(f"{path}: not a readable HDF5 file (truncated or another format); {remedy}") from None
+
+
 def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
     """Write a trajectory and the scene that made it to an HDF5 file, atomically.
 
@@ -118,13 +127,7 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(f"{path}: file not found; check the path")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise FileFormatError(
-            f"{path}: not a readable HDF5 file (truncated or another format); re-create it with `jaxspring run`"
-        ) from None
-    with f:
+    with open_hdf5(path, "re-create it with `jaxspring run`") as f:
         if f.attrs.get("format") != TRAJECTORY_FORMAT:
             raise FileFormatError(
                 f"{path}: not a jaxspring trajectory (format={f.attrs.get('format')!r}); give a file written by `jaxspring run`"
