@@ -25,12 +25,15 @@ from .fit import (
     observations_from_trajectory,
     synthetic_observations,
 )
+from .fit.predict import Prediction, predict
+from .fit.recordings import RecordingTarget, recording_target
 from .io.experiment import Experiment, load_experiment, observations_from_file
 from .io.fit_file import load_fit_progress, save_fit
 from .io.recording import Recording, load_recording, save_recording
 from .io.scene import builtin_scenes, load_scene, scene_from_dict
 from .io.trajectory import load_trajectory, save_trajectory
-from .render import plot_fit, render
+from .render import plot_fit, plot_prediction, render
+from .sim.driven import Drive
 from .sim.forces import register_term, safe_norm
 from .sim.integrators import (
     INTEGRATORS,
@@ -62,6 +65,7 @@ __all__ = [
     "State",
     "Trajectory",
     "rollout",
+    "Drive",
     "final_state",
     "energy",
     "safe_norm",
@@ -90,6 +94,11 @@ __all__ = [
     "save_trajectory",
     "load_trajectory",
     "Recording",
+    "RecordingTarget",
+    "recording_target",
+    "predict",
+    "Prediction",
+    "plot_prediction",
     "load_recording",
     "save_recording",
     "render",

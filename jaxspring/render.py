@@ -155,3 +155,33 @@ def plot_fit(result, out) -> Path:
     fig.suptitle("fit: " + " -> ".join(f"{s.kind}({s.frames})" for s in result.stages), fontsize=9)
     fig.tight_layout()
     return save_figure(fig, out)
+
+
+def plot_prediction(prediction, out, markers: int = 4) -> Path:
+    """Recorded against predicted marker heights (up to `markers` markers, with the 95% band
+    where present) and the marker error against time, as a PNG written atomically.
+
+    Example:
+        >>> js.plot_prediction(js.predict(scene, values, [rec], driven=[0, 11])[0], "take1.png")
+    """
+    plt = pyplot()
+    p = prediction
+    fig, (paths, errors) = plt.subplots(1, 2, figsize=(11, 3.8), dpi=90)
+    shown = np.unique(np.linspace(0, p.x.shape[1] - 1, min(markers, p.x.shape[1])).round().astype(int))
+    for k, colour in zip(shown, plt.rcParams["axes.prop_cycle"].by_key()["color"]):
+        paths.plot(p.t, p.recorded[:, k, 1], ".", color=colour, markersize=2, alpha=0.5)
+        paths.plot(p.t[p.start :], p.x[p.start :, k, 1], color=colour, linewidth=1.2, label=f"marker {k}")
+        if p.low is not None:
+            paths.fill_between(p.t[p.start :], p.low[p.start :, k, 1], p.high[p.start :, k, 1], color=colour, alpha=0.2)
+    paths.set(xlabel="t [s]", ylabel="y [m]", title=f"{p.name}: recorded (dots) and predicted")
+    paths.legend(loc="best", fontsize=8)
+    distance = np.linalg.norm(p.x - p.recorded, axis=-1)[p.start :]
+    with np.errstate(invalid="ignore"):
+        errors.plot(p.t[p.start :], 1e3 * np.nanmean(distance, axis=1), color="black", label="mean over markers")
+        errors.plot(
+            p.t[p.start :], 1e3 * np.nanmax(distance, axis=1), color="tab:red", linewidth=0.8, label="worst marker"
+        )
+    errors.set(xlabel="t [s]", ylabel="error [mm]", title=f"mean abs. error {1e3 * p.mean_absolute_error:.2f} mm")
+    errors.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    return save_figure(fig, Path(out))

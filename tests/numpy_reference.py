@@ -9,8 +9,14 @@ import math
 import numpy as np
 
 
-def reference_rollout(x0, v0, springs, rest, mass, pinned, drag, params, dt, steps, save_every):
-    """Semi-implicit Euler; returns positions (frames, N, 3) and velocities (frames, N, 3)."""
+def reference_rollout(x0, v0, springs, rest, mass, pinned, drag, params, dt, steps, save_every, driven=None):
+    """Semi-implicit Euler; returns positions (frames, N, 3) and velocities (frames, N, 3).
+
+    `driven` maps a particle to its path, a function of time giving (3,): at each step
+    from t to t + dt the particle is put at path(t) with velocity (path(t + dt) - path(t)) / dt
+    for the force, and at path(t + dt) after it.
+    """
+    driven = driven or {}
     x = [list(map(float, p)) for p in np.asarray(x0)]
     v = [list(map(float, p)) for p in np.asarray(v0)]
     n = len(x)
@@ -34,6 +40,10 @@ def reference_rollout(x0, v0, springs, rest, mass, pinned, drag, params, dt, ste
 
     xs, vs = [np.array(x)], [np.array(v)]
     for step in range(1, steps + 1):
+        ends = {}
+        for i, path in driven.items():
+            here, there = np.asarray(path((step - 1) * dt), float), np.asarray(path(step * dt), float)
+            x[i], v[i], ends[i] = list(here), list((there - here) / dt), list(there)
         force = [[0.0, 0.0, 0.0] for _ in range(n)]
         for s, (a, b) in enumerate(springs):
             d = [x[b][k] - x[a][k] for k in range(3)]
@@ -59,6 +69,9 @@ def reference_rollout(x0, v0, springs, rest, mass, pinned, drag, params, dt, ste
         for i in range(n):
             if pinned[i]:
                 v[i] = [0.0, 0.0, 0.0]
+                continue
+            if i in ends:
+                x[i] = ends[i]
                 continue
             for k in range(3):
                 v[i][k] += dt * force[i][k] / mass[i]

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import sys
 
-from . import bench, check, demo, fit, render, run
+from . import bench, check, demo, fit, predict, render, run
 from .common import EXIT_USER_ERROR, Parser
 
-COMMANDS = {"run": run, "check": check, "bench": bench, "render": render, "fit": fit, "demo": demo}
+COMMANDS = {"run": run, "check": check, "bench": bench, "render": render, "fit": fit, "predict": predict, "demo": demo}
 
 
 def build_parser() -> Parser:

@@ -97,6 +97,16 @@ def _fit_problem(args):
         "dtype": args.dtype,
         "backend": experiment.scene.model.backend,
     }
+    if experiment.recordings:
+        config.update(
+            target=[str(p) for p in experiment.recordings],
+            markers=None if experiment.markers is None else list(experiment.markers),
+            driven=list(experiment.driven),
+            start=experiment.start,
+            smooth=experiment.smooth,
+            loss=experiment.loss,
+            huber_scale=experiment.huber_scale,
+        )
     return experiment, observations, experiment.params, init, settings, config
 
 
@@ -122,7 +132,16 @@ def command(args):
     plot = out.with_suffix(".png")
     experiment, observations, names, init, settings, config = _fit_problem(args)
     scene = experiment.scene
-    inputs = [args.experiment, args.target, experiment.target_file]
+    inputs = [args.experiment, args.target, experiment.target_file, *experiment.recordings, *experiment.evaluate]
+    prediction = None
+    if experiment.recordings:
+        prediction = {
+            "scene_toml": experiment.scene_text,
+            "markers": [int(m) for m in observations.markers],
+            "driven": [int(d) for d in observations.driven],
+            "start": observations.start,
+            "smooth": experiment.smooth,
+        }
     for path in (out, plot):
         check_output(path, inputs)
     progress = load_fit_progress(out, config, names) if args.resume else None
@@ -170,7 +189,7 @@ def command(args):
                 scene, [observations], names, [init], settings, progress=progress, on_iteration=on_iteration
             )[0]
         final = latest[0] or progress
-        save_fit(out, config, names, initial, final, result)
+        save_fit(out, config, names, initial, final, result, prediction)
     except KeyboardInterrupt:
         if latest[0] is not None:
             save_fit(out, config, names, initial, latest[0])
@@ -185,4 +204,35 @@ def command(args):
             signal.signal(sig, handler)
     plot_fit(result, plot)
     print(result.table())
+    if experiment.evaluate:
+        _evaluate(experiment, result)
     print(f"wrote {out} and {plot}")
+
+
+def _evaluate(experiment, result):
+    """Print the fitted model's error on the experiment's held-out recordings."""
+    from ..fit.predict import predict
+    from ..io.recording import load_recording
+
+    paths = experiment.evaluate
+    predictions = predict(
+        experiment.scene,
+        result.final,
+        [load_recording(p) for p in paths],
+        experiment.markers,
+        experiment.driven,
+        experiment.start,
+        experiment.smooth,
+        names=tuple(Path(p).stem for p in paths),
+    )
+    print_errors("held-out", predictions)
+
+
+def print_errors(title, predictions):
+    """One line per prediction (mean absolute and RMS marker error after its start) and their means."""
+    print(f"{title:<24} {'mean abs. error [mm]':>21} {'RMS error [mm]':>15}")
+    for p in predictions:
+        print(f"{p.name:<24} {1e3 * p.mean_absolute_error:>21.3f} {1e3 * p.rms_error:>15.3f}")
+    mae = np.mean([p.mean_absolute_error for p in predictions])
+    rms = np.mean([p.rms_error for p in predictions])
+    print(f"{'mean':<24} {1e3 * mae:>21.3f} {1e3 * rms:>15.3f}")

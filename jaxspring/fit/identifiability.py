@@ -107,7 +107,7 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
         return None
     r = np.asarray(residuals(flat))
     jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
-    count, dims = r.shape[0], flat.shape[0]
+    count, dims = getattr(observations, "residual_count", r.shape[0]), flat.shape[0]  # unseen markers carry no data
     sigma2 = float(r @ r) / max(count - dims, 1)
     labels = _labels(theta)
     warnings = []

@@ -157,4 +157,4 @@ def _touches_ground(scene: Scene | None, observations: Observations) -> bool:
     """Whether the target reaches the ground plane (contact makes the loss landscape rough)."""
     if scene is None or not scene.model.has("ground"):
         return False
-    return bool(np.min(observations.x[..., 1]) < float(scene.params.ground_height))
+    return bool(np.nanmin(observations.x[..., 1]) < float(scene.params.ground_height))

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+import glob
 from pathlib import Path
 
 from ..errors import InputError
 from ..fit.observations import Observations, observations_from_trajectory, synthetic_observations
+from ..fit.recordings import LOSSES, RecordingTarget, recording_target
 from ..fit.settings import FitSettings
 from ..sim.scene import Scene
 from . import schema
-from .scene import load_scene
+from .recording import load_recording
+from .scene import load_scene, resolve_scene_path
 from .trajectory import load_trajectory
 
 
@@ -30,6 +33,10 @@ class Experiment:
         noise: observation noise of the synthetic target, relative to the RMS displacement.
         seed: random seed of the noise.
         particles: observed particles (None: every free particle).
+        recordings: recording files to fit (the fitted values are shared by all of them).
+        markers, driven, start, smooth: how recordings map onto the scene (see `recording_target`).
+        loss, huber_scale: the recordings' misfit ("mse", "l1" or "huber").
+        evaluate: held-out recording files whose error `jaxspring fit` reports after fitting.
 
     Example:
         >>> experiment = js.load_experiment("fitting/chain.toml")
@@ -50,17 +57,58 @@ class Experiment:
     seed: int = 0
     particles: list | None = None
     description: str = ""
+    recordings: tuple = ()
+    markers: list | None = None
+    driven: tuple = ()
+    start: int = 1
+    smooth: int = 0
+    loss: str = "mse"
+    huber_scale: float = 0.002
+    evaluate: tuple = ()
+    scene_text: str = ""
 
     def replace(self, **changes) -> Experiment:
         return dataclasses.replace(self, **changes)
 
-    def observations(self) -> Observations:
-        """The target: the recorded file, or a synthetic recording with noise."""
+    def observations(self) -> Observations | RecordingTarget:
+        """The target: the recordings, the recorded file, or a synthetic recording with noise."""
+        if self.recordings:
+            return self.recording_target(self.recordings)
         if self.target_file is not None:
             return observations_from_file(self.scene, self.target_file, self.particles)
         return synthetic_observations(
             self.scene, self.true_values or {}, self.steps, self.save_every, self.noise, self.seed, self.particles
         )
+
+    def recording_target(self, paths) -> RecordingTarget:
+        """`paths` (recording files) prepared with this experiment's markers, driven and start."""
+        loaded = [load_recording(p) for p in paths]
+        try:
+            return recording_target(
+                self.scene,
+                loaded,
+                self.markers,
+                self.driven,
+                self.start,
+                self.smooth,
+                self.loss,
+                self.huber_scale,
+                names=tuple(Path(p).stem for p in paths),
+            )
+        except InputError as exc:
+            raise exc.within("", "target") from None
+
+
+def recording_paths(patterns, base: Path, field: str) -> tuple:
+    """Files matching `patterns` (paths or globs, relative to `base`), sorted, each once."""
+    found = []
+    for pattern in patterns:
+        full = pattern if Path(pattern).is_absolute() else str(base / pattern)
+        matches = sorted(glob.glob(full)) if glob.has_magic(pattern) else ([full] if Path(full).exists() else [])
+        if not matches:
+            raise InputError(field, f"{pattern!r} matches no file (looked in {base})", "fix the path or glob")
+        found += [m for m in matches if m not in found]
+    return tuple(found)
 
 
 def observations_from_file(scene: Scene, path, particles=None) -> Observations:
@@ -102,6 +150,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     scene_ref = top.take("scene", schema.string, required=True)
     candidate = (path.parent / scene_ref).resolve()
     scene = load_scene(candidate if candidate.is_file() else scene_ref)
+    scene_text = resolve_scene_path(candidate if candidate.is_file() else scene_ref).read_text(encoding="utf-8")
 
     target = top.table("target", required=True)
     target_file = target.take("file", schema.string)
@@ -112,11 +161,30 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     noise = target.take("noise", schema.number, default=0.0)
     seed = target.take("seed", schema.count, default=0)
     particles = target.take("particles", schema.index_list)
+    patterns = target.take("recordings", schema.string_list)
+    markers = target.take("markers", schema.index_list)
+    driven = target.take("driven", schema.index_list, default=[])
+    start = target.take("start", schema.count, default=1)
+    smooth = target.take("smooth", schema.count, default=0)
     true_table = target.table("true")
     true_values = None
     if true_table is not None:
         true_values = {k: true_table.take(k, schema.non_negative_values) for k in list(true_table.data)}
     target.finish()
+    recordings = ()
+    if patterns is not None:
+        if target_file is not None:
+            raise InputError("target", "gives both file and recordings", "fit either a trajectory file or recordings")
+        recordings = recording_paths(patterns, path.parent, "target.recordings")
+    elif markers is not None or driven:
+        raise InputError("target", "markers and driven need recordings", 'add recordings = ["takes/*.h5"]')
+    evaluate_table = top.table("evaluate")
+    evaluate = ()
+    if evaluate_table is not None:
+        evaluate = recording_paths(
+            evaluate_table.take("recordings", schema.string_list, required=True), path.parent, "evaluate.recordings"
+        )
+        evaluate_table.finish()
     if noise < 0:
         raise InputError("target.noise", "must be >= 0", "give a relative noise level such as 0.01")
     if save_every < 1 or steps < save_every or steps % save_every:
@@ -144,6 +212,10 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         ensemble_members=fit_table.take("ensemble_members", schema.count, default=defaults.ensemble_members),
     )
     backend = fit_table.take("backend", schema.string)
+    loss = fit_table.take("loss", schema.string, default="mse")
+    huber_scale = fit_table.take("huber_scale", schema.number, default=0.002)
+    if loss not in LOSSES:
+        raise InputError("fit.loss", f"unknown loss {loss!r}", f"use one of {', '.join(LOSSES)}")
     fit_table.finish()
     top.finish()
     try:
@@ -171,4 +243,13 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         seed=seed,
         particles=particles,
         description=description,
+        recordings=recordings,
+        markers=markers,
+        driven=tuple(driven),
+        start=start,
+        smooth=smooth,
+        loss=loss,
+        huber_scale=huber_scale,
+        evaluate=evaluate,
+        scene_text=scene_text,
     )

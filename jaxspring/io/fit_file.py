@@ -17,10 +17,20 @@ FIT_FORMAT = "jaxspring.fit"
 FIT_FORMAT_VERSION = 1
 
 
-def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, result: FitResult | None = None) -> None:
+def save_fit(
+    path,
+    config: dict,
+    names,
+    initial: dict,
+    progress: FitProgress,
+    result: FitResult | None = None,
+    prediction: dict | None = None,
+) -> None:
     """Write a single-member fit (checkpoint or final) atomically.
 
     `config` (JSON-able) identifies the fit; `--resume` refuses a file whose config differs.
+    `prediction` (JSON-able: scene file text, markers, driven, start, smooth) is what
+    `jaxspring predict` needs besides the fitted values.
 
     Example:
         >>> save_fit("chain.fit.h5", config, result.names, result.initial, progress, result)
@@ -35,6 +45,8 @@ def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, re
             config=json.dumps(config, sort_keys=True),
             done=bool(progress.done),
         )
+        if prediction is not None:
+            f.attrs["prediction"] = json.dumps(prediction, sort_keys=True)
         group = f.create_group("fit")
         final = result.final if result is not None else {n: np.exp(np.asarray(progress.theta[n])[0]) for n in names}
         group.create_group("initial").attrs.update({n: np.asarray(initial[n]) for n in names})
@@ -67,6 +79,7 @@ def save_fit(path, config: dict, names, initial: dict, progress: FitProgress, re
                 )
                 corr = group.create_dataset("correlation", data=ident.correlation)
                 corr.attrs["names"] = list(ident.names)
+                group.attrs["noise_std"] = float(ident.noise_std)
                 group.attrs["warnings"] = json.dumps(list(ident.warnings))
 
 
@@ -106,3 +119,53 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
             done=bool(f.attrs["done"]),
             wall_s=float(optimizer.attrs["wall_s"]),
         )
+
+
+def load_fitted(path) -> dict:
+    """What prediction needs from a finished fit file: {"final": name -> value,
+    "prediction": the saved prediction dict, "covariance": {"names", "matrix"} of the log
+    values or None, "noise_std": the fit's residual standard deviation [m] (0 if unknown)}.
+
+    Example:
+        >>> fitted = load_fitted("rope.fit.h5"); fitted["final"]
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"{path}: file not found; give a fit file written by `jaxspring fit`")
+    with open_hdf5(path, "fit again with `jaxspring fit`") as f:
+        if f.attrs.get("format") != FIT_FORMAT:
+            raise FileFormatError(f"{path}: not a jaxspring fit file; give one written by `jaxspring fit`")
+        if not bool(f.attrs.get("done", False)):
+            raise InputError("fit", f"{path} is an unfinished fit", "finish it with `jaxspring fit ... --resume`")
+        if "prediction" not in f.attrs:
+            raise InputError(
+                "fit", f"{path} was not fitted to recordings", "fit an experiment with [target] recordings first"
+            )
+        group = f["fit"]
+        final = {n: np.asarray(v) for n, v in group["final"].attrs.items()}
+        covariance = None
+        if "correlation" in group and "standard_error" in group:
+            labels = [str(n) for n in group["correlation"].attrs["names"]]
+            relative = np.concatenate(
+                [
+                    np.asarray(group["standard_error"].attrs[n] / final[n], dtype=float).reshape(-1)
+                    for n in _unique(labels)
+                ]
+            )
+            matrix = group["correlation"][()] * np.outer(relative, relative)
+            covariance = {"names": labels, "matrix": matrix}
+        return {
+            "final": final,
+            "prediction": json.loads(f.attrs["prediction"]),
+            "covariance": covariance,
+            "noise_std": float(group.attrs.get("noise_std", 0.0)),
+        }
+
+
+def _unique(labels):
+    names = []
+    for label in labels:
+        name = label.split("[")[0]
+        if name not in names:
+            names.append(name)
+    return names

@@ -77,12 +77,13 @@ class Recording:
         return np.isfinite(self.x).all(axis=-1)
 
 
-def save_recording(path, recording: Recording) -> None:
+def save_recording(path, recording: Recording, bands=None) -> None:
     """Write a recording to an HDF5 file (docs/file-formats.md), atomically.
 
     The file holds /t float64 (F,), /x float64 (F, M, 3) with NaN where a marker was
     not seen, and /markers (M,) names; root attributes format="jaxspring.recording",
-    format_version=1.
+    format_version=1. `bands` (low, high), each (F, M, 3), adds a prediction's 95% band
+    as /band_low and /band_high (readers of recordings ignore them).
 
     Example:
         >>> js.save_recording("take1.h5", js.Recording(t=t, x=x))
@@ -99,6 +100,9 @@ def save_recording(path, recording: Recording) -> None:
         f.create_dataset("t", data=recording.t)
         f.create_dataset("x", data=recording.x)
         f.create_dataset("markers", data=list(recording.markers), dtype=h5py.string_dtype("utf-8"))
+        if bands is not None:
+            f.create_dataset("band_low", data=np.asarray(bands[0], dtype=float))
+            f.create_dataset("band_high", data=np.asarray(bands[1], dtype=float))
 
 
 def load_recording(path) -> Recording:

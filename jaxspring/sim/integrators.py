@@ -2,8 +2,9 @@
 
 Each integrator is a pure function `(force, mass, free, x, v, dt) -> (x', v')`:
 `force(x, v)` is the total force (N, 3), `mass` the masses as a column (N, 1),
-`free` a boolean column (N, 1) that is False for pinned particles (they keep x
-and have v = 0). Written against a force function rather than a model, the same
+`free` a boolean column (N, 1) that is False for particles moved from outside:
+they keep the velocity they enter the step with, so a pinned particle (v = 0) stays
+put and a driven one moves along its path over the step (see `sim.driven`). Written against a force function rather than a model, the same
 code steps a scene and the scalar test equation x'' = -omega^2 x - c x' that the
 stability analyser uses, so the dt bounds it prints are those of this code.
 
@@ -35,7 +36,7 @@ def semi_implicit_euler(force, mass, free, x, v, dt):
 
     v' = v + dt F(x, v) / m, then x' = x + dt v'.
     """
-    v = jnp.where(free, v + dt * force(x, v) / mass, 0.0)
+    v = v + dt * _acceleration(force, mass, free)(x, v)
     return x + dt * v, v
 
 
@@ -49,17 +50,15 @@ def verlet(force, mass, free, x, v, dt):
     """
     accel = _acceleration(force, mass, free)
     a0 = accel(x, v)
-    v_half = jnp.where(free, v + 0.5 * dt * a0, 0.0)
+    v_half = v + 0.5 * dt * a0
     x_new = x + dt * v_half
-    v_predicted = jnp.where(free, v + dt * a0, 0.0)
-    v_new = jnp.where(free, v_half + 0.5 * dt * accel(x_new, v_predicted), 0.0)
+    v_new = v_half + 0.5 * dt * accel(x_new, v + dt * a0)
     return x_new, v_new
 
 
 def rk4(force, mass, free, x, v, dt):
     """Classic fourth-order Runge-Kutta on (x, v), four force evaluations per step."""
     accel = _acceleration(force, mass, free)
-    v = jnp.where(free, v, 0.0)
 
     def rate(xi, vi):
         return vi, accel(xi, vi)
@@ -70,7 +69,7 @@ def rk4(force, mass, free, x, v, dt):
     k4x, k4v = rate(x + dt * k3x, v + dt * k3v)
     x_new = x + dt / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
     v_new = v + dt / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
-    return x_new, jnp.where(free, v_new, 0.0)
+    return x_new, v_new
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,10 +108,10 @@ def backward_euler(force, mass, free, x, v, dt, settings: NewtonSettings = NEWTO
     weight = jnp.where(free, mass, 0.0)
     keep = free.astype(dtype)
 
-    def residual(w_flat):
-        w = w_flat.reshape(shape) * keep
+    def residual(w_flat):  # a particle that is not free keeps its velocity: w = v
+        w = jnp.where(free, w_flat.reshape(shape), v)
         r = keep * (weight * (w - v) - dt * force(x + dt * w, w))
-        return (r + (1.0 - keep) * w_flat.reshape(shape)).reshape(-1)
+        return (r + (1.0 - keep) * (w_flat.reshape(shape) - v)).reshape(-1)
 
     if settings.tolerance is None:
         tolerance = 1e-12 if dtype == jnp.float64 else 1e-5
@@ -147,9 +146,9 @@ def backward_euler(force, mass, free, x, v, dt, settings: NewtonSettings = NEWTO
 
         return jax.lax.custom_linear_solve(linear, b, solve=solve, transpose_solve=solve)
 
-    guess = jnp.where(free, v + dt * force(x, v) / mass, 0.0).reshape(-1)
+    guess = jnp.where(free, v + dt * force(x, v) / mass, v).reshape(-1)
     w = jax.lax.custom_root(residual, guess, newton, tangent_solve).reshape(shape)
-    w = jnp.where(free, w, 0.0)
+    w = jnp.where(free, w, v)
     return x + dt * w, w
 
 

@@ -10,12 +10,22 @@ import jax
 import jax.numpy as jnp
 
 from ..errors import InputError
+from .driven import Drive, driven_rollout
 from .model import Model
 from .params import Params
 from .state import State, Trajectory
 
 
-def rollout(model: Model, params: Params, state: State, steps: int, save_every: int = 1, checkpoint=None) -> Trajectory:
+def rollout(
+    model: Model,
+    params: Params,
+    state: State,
+    steps: int,
+    save_every: int = 1,
+    checkpoint=None,
+    drive: Drive | None = None,
+    t0=0.0,
+) -> Trajectory:
     """Simulate `steps` time steps and keep every `save_every`-th state.
 
     Pure and differentiable: works under `jax.jit` (with `steps`, `save_every`,
@@ -34,6 +44,9 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
             keep only the state every ~sqrt(steps) steps and recompute in between,
             memory ~ sqrt(steps) states, about one more forward pass. An int K: the
             same with segments of K steps. The forward values are identical.
+        drive: particles moved along given paths (a `Drive`, see `sim.driven`); they are
+            placed on their paths at every step, whatever `state` holds for them.
+        t0: the time [s] of `state` on the drive's clock (frame k is at t0 + k * save_every * dt).
     Returns:
         Trajectory with x, v of shape (steps // save_every + 1, N, 3) and t of
         shape (frames,); frame 0 is the initial state.
@@ -45,13 +58,15 @@ def rollout(model: Model, params: Params, state: State, steps: int, save_every: 
     frames = frame_count(steps, save_every)
     state = _in_model_precision(model, state)
     if frames == 0:  # frame 0 only
-        return Trajectory(x=state.x[None], v=state.v[None], t=jnp.zeros(1, state.x.dtype))
+        return Trajectory(x=state.x[None], v=state.v[None], t=jnp.full(1, t0, state.x.dtype))
+    if drive is not None:
+        return driven_rollout(model, params, state, drive, frames, save_every, t0)
     segment = _segment_length(checkpoint, frames * save_every)
     if segment is None:
         _, x, v = simulate(model, params, state, frames, save_every)
     else:
         _, x, v = _simulate_checkpointed(model, params, state, frames, save_every, segment)
-    t = jnp.arange(frames + 1) * (save_every * model.dt)
+    t = t0 + jnp.arange(frames + 1) * (save_every * model.dt)
     return Trajectory(
         x=jnp.concatenate([state.x[None], x], axis=0),
         v=jnp.concatenate([state.v[None], v], axis=0),

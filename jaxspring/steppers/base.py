@@ -92,12 +92,21 @@ class Stepper:
         """Masses and the not-pinned mask, shaped to broadcast against an internal state."""
         return model.mass[:, None], (~model.pinned)[:, None]
 
-    def step(self, model, params, state):
-        """One step of `model.dt` on a state in the internal layout."""
+    def step(self, model, params, state, driven=None):
+        """One step of `model.dt` on a state in the internal layout.
+
+        Pinned particles hold still (their velocity is taken as zero). `driven`, a mask
+        broadcasting against the state, marks particles moved from outside: they keep the
+        velocity they enter with over the step (see `sim.driven`).
+        """
         stepper = self if model.integrator.explicit else self.pure_jax()  # Newton needs forward mode
         mass, free = stepper.mass_and_free(model)
+        v = jnp.where(free, state.v, 0.0)
+        if driven is not None:
+            v = jnp.where(driven, state.v, v)
+            free = free & ~driven
         x, v = model.integrator.step(
-            lambda x, v: stepper.internal_force(model, params, x, v), mass, free, state.x, state.v, model.dt
+            lambda x, v: stepper.internal_force(model, params, x, v), mass, free, state.x, v, model.dt
         )
         return state.replace(x=x, v=v)
 

@@ -1,0 +1,89 @@
+"""`jaxspring predict`: simulate recordings with a fit's values and report the error."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from .common import check_output
+
+
+def add_parser(sub):
+    parser = sub.add_parser("predict", help="predict recordings with fitted values; print and write the error")
+    parser.add_argument("fit", help="fit file written by `jaxspring fit` on recordings")
+    parser.add_argument("recordings", nargs="+", help="recording files (.h5 or .csv) to predict")
+    parser.add_argument("--out-dir", required=True, help="folder for DIR/<recording stem>.h5 and .png")
+    parser.add_argument(
+        "--bands",
+        type=int,
+        default=0,
+        metavar="N",
+        help="add a 95%% band from N parameter sets drawn from the fit's covariance (e.g. 64)",
+    )
+    parser.add_argument("--no-plot", action="store_true", help="skip the figures")
+    parser.add_argument("--quiet", action="store_true", help="print only the mean errors")
+
+
+def command(args):
+    import tomllib
+
+    import jax
+
+    from ..errors import InputError
+    from ..fit.predict import predict
+    from ..io.fit_file import load_fitted
+    from ..io.recording import load_recording, save_recording
+    from ..io.scene import scene_from_dict
+    from ..render import plot_prediction
+    from .fit import print_errors
+
+    jax.config.update("jax_enable_x64", True)
+    if args.bands < 0:
+        raise InputError("--bands", f"must be >= 0, got {args.bands}", "give a number of parameter sets such as 64")
+    out_dir = Path(args.out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError("--out-dir", f"{str(out_dir)!r} is a file", "give a folder")
+    stems = [Path(p).stem for p in args.recordings]
+    if len(set(stems)) != len(stems):
+        raise InputError("recordings", "two recordings share a file name", "give recordings with distinct names")
+    fitted = load_fitted(args.fit)
+    info = fitted["prediction"]
+    scene = scene_from_dict(tomllib.loads(info["scene_toml"]))
+    recordings = [load_recording(p) for p in args.recordings]
+    outputs = [out_dir / f"{stem}.h5" for stem in stems]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for path in outputs:
+        check_output(path, [args.fit, *args.recordings])
+    if args.bands and fitted["covariance"] is None:
+        raise InputError(
+            "--bands", f"{args.fit} has no parameter covariance", "fit again with the identifiability report"
+        )
+    predictions = predict(
+        scene,
+        fitted["final"],
+        recordings,
+        info["markers"],
+        info["driven"],
+        info["start"],
+        info.get("smooth", 0),
+        names=tuple(stems),
+        covariance=fitted["covariance"],
+        noise_std=fitted["noise_std"],
+        samples=args.bands,
+    )
+    for path, rec, p in zip(outputs, recordings, predictions):
+        save_recording(
+            path, type(rec)(t=rec.t, x=p.x, markers=rec.markers), bands=(p.low, p.high) if args.bands else None
+        )
+        if not args.no_plot:
+            plot_prediction(p, path.with_suffix(".png"))
+    if args.quiet:
+        import numpy as np
+
+        print(f"mean abs. error {1e3 * np.mean([p.mean_absolute_error for p in predictions]):.3f} mm")
+    else:
+        print_errors("recording", predictions)
+    if args.bands:
+        coverage = [p.coverage for p in predictions]
+        print(f"95% band holds {100 * sum(coverage) / len(coverage):.1f}% of the seen marker coordinates")
+    print(f"wrote {len(outputs)} predictions to {out_dir}", file=sys.stderr if args.quiet else sys.stdout)

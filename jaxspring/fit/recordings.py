@@ -1,0 +1,385 @@
+"""Recordings as a fit's target: markers seen at camera frames, some particles driven.
+
+`recording_target` turns recordings of one object (`Recording`s, any lengths and frame
+times) into one padded batch: every recording starts at its frame `start`, its driven
+particles follow their markers, and the misfit is taken only where a marker was seen,
+at the frames' own times (simulated positions interpolated linearly between steps).
+
+The start state: a particle carrying a marker starts at the marker; the others at the
+scene's positions moved by the rigid motion that best matches the markers (least
+squares, Kabsch), plus the markers' remaining displacements spread by inverse-square
+distance weights in the scene's configuration (so they follow a bent rope, and a
+rigidly moved object exactly). Velocities are the backward difference of that rule
+between frames start - 1 and start (zero when start is 0). Markers lost for a few
+frames are interpolated linearly in time for the start states and driven paths.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+from ..sim.driven import Drive, driven_simulate, steps_to_reach
+from ..sim.state import State
+
+LOSSES = ("mse", "l1", "huber")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RecordingTarget:
+    """Recordings of one object prepared as one fit target (see `recording_target`).
+
+    Attributes (R recordings, F frames from `start` on, padded; M markers, N particles):
+        names: the recordings' names.
+        markers: particle carrying each marker, int (M,).
+        driven: driven particles, int (D,), each carrying a marker.
+        start: the frame each simulation starts from.
+        times: frame times from the start frame [s], (R, F); padding adds tiny steps after the last.
+        x: marker positions (R, F, M, 3), NaN where not seen and in padding.
+        filled: x with gaps interpolated in time (start states, driven paths), (R, F, M, 3).
+        states_x, states_v: start-rule states of all particles at every frame, (R, F, N, 3).
+        lengths: frames of each recording from `start` on, int (R,).
+        dt: the scene's time step.
+        loss: "mse", "l1" or "huber"; huber_scale: Huber's transition [m].
+    """
+
+    names: tuple
+    markers: np.ndarray
+    driven: np.ndarray
+    start: int
+    times: np.ndarray
+    x: np.ndarray
+    filled: np.ndarray
+    states_x: np.ndarray
+    states_v: np.ndarray
+    lengths: np.ndarray
+    dt: float
+    loss: str = "mse"
+    huber_scale: float = 0.002
+    noise_std: float = 0.0
+    truth: dict | None = None
+    save_every: int = 1
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.x.shape[1])
+
+    @property
+    def steps(self) -> int:
+        return steps_to_reach(float(self.times[:, -1].max()), self.dt)
+
+    @property
+    def full(self) -> bool:
+        return True  # segments start from the start rule at any frame
+
+    @property
+    def seen(self) -> np.ndarray:
+        return np.isfinite(self.x).all(axis=-1)
+
+    @property
+    def residual_count(self) -> int:
+        """Residual values that carry data (seen markers after the start frame, x3)."""
+        return int(self.seen[:, 1:].sum()) * 3
+
+    @property
+    def initial_state(self) -> State:
+        return State(x=jnp.asarray(self.states_x[:, 0]), v=jnp.asarray(self.states_v[:, 0]))
+
+
+def recording_target(
+    scene, recordings, markers=None, driven=(), start=1, smooth=0, loss="mse", huber_scale=0.002, names=None
+):
+    """Prepare `recordings` (a list of `Recording`) of `scene` as one fit target.
+
+    Args:
+        markers: particle carrying marker k (default: particle k).
+        driven: particles moved as their markers were recorded (each must carry a marker).
+        start: frame the simulations start from (x there; v by backward difference).
+        smooth: 0 (default): start states and driven paths from the markers as recorded. K > 0:
+            from a least-squares quadratic in time through the 2K + 1 frames around each frame
+            (seen ones), its value and slope: against noise on every frame, which a backward
+            difference turns into velocity errors of ~1.4 noise / frame interval.
+        loss: "mse" (default), "l1" or "huber" (quadratic below `huber_scale` [m], linear above).
+
+    Example:
+        >>> target = recording_target(scene, [js.load_recording("take1.h5")], driven=[0, 11])
+        >>> result = js.fit(scene, target, ["ks.stretch", "kd.stretch", "cd"])
+    """
+    recordings = list(recordings)
+    names = tuple(names or (f"recording {i}" for i in range(len(recordings))))
+    if not recordings:
+        raise InputError("recordings", "none given", "give at least one recording file")
+    counts = {r.marker_count for r in recordings}
+    if len(counts) != 1:
+        raise InputError("recordings", f"differ in marker count ({sorted(counts)})", "fit recordings of one setup")
+    (count,) = counts
+    model = scene.model
+    n = model.particle_count
+    markers = np.arange(count) if markers is None else np.asarray(markers, dtype=np.int64).reshape(-1)
+    if markers.size != count:
+        raise InputError(
+            "markers",
+            f"lists {markers.size} particles but the recordings have {count} markers",
+            "give one particle per marker",
+        )
+    _check_indices("markers", markers, n)
+    if np.unique(markers).size != markers.size:
+        raise InputError("markers", "puts two markers on one particle", "give each marker its own particle")
+    driven = np.asarray(driven, dtype=np.int64).reshape(-1)
+    _check_indices("driven", driven, n)
+    carried = [int(np.nonzero(markers == p)[0][0]) if p in markers else -1 for p in driven]
+    if -1 in carried:
+        raise InputError(
+            "driven", f"particle {driven[carried.index(-1)]} carries no marker", "drive particles that carry markers"
+        )
+    if np.asarray(model.pinned)[driven].any():
+        raise InputError("driven", "names a pinned particle", "a particle is either pinned or driven")
+    if loss not in LOSSES:
+        raise InputError("loss", f"unknown loss {loss!r}", f"use one of {', '.join(LOSSES)}")
+    if not (np.isfinite(huber_scale) and huber_scale > 0):
+        raise InputError("huber_scale", "must be a positive length [m]", "set e.g. huber_scale = 0.002")
+    start = int(start)
+    for name, rec in zip(names, recordings):
+        if not 0 <= start < rec.frame_count - 1:
+            raise InputError(
+                "start",
+                f"frame {start} is not before the last frame of {name} ({rec.frame_count} frames)",
+                "start earlier",
+            )
+    frames = max(r.frame_count for r in recordings) - start
+    dtype = np.dtype(model.mass.dtype)
+    rest = np.asarray(scene.state.x, dtype=float)
+    shape = (len(recordings), frames)
+    times, x, filled = np.zeros(shape), np.full(shape + (count, 3), np.nan), np.zeros(shape + (count, 3))
+    states_x, states_v = np.zeros(shape + (n, 3)), np.zeros(shape + (n, 3))
+    lengths = np.zeros(len(recordings), dtype=np.int64)
+    for i, (name, rec) in enumerate(zip(names, recordings)):
+        gapless = _fill_gaps(name, rec, driven_markers=carried, start=start)
+        used = rec.frame_count - start
+        lengths[i] = used
+        times[i, :used] = rec.t[start:] - rec.t[start]
+        times[i, used:] = times[i, used - 1] + 1e-3 * model.dt * np.arange(1, frames - used + 1)  # still increasing
+        x[i, :used] = rec.x[start:]
+        positions, velocities = _smoothed(rec.t, gapless, rec.seen, int(smooth))
+        for j in range(used):
+            here, rate = positions[start + j], velocities[start + j]
+            states_x[i, j] = spread(rest, markers, here)
+            states_v[i, j] = (spread(rest, markers, here + 1e-3 * rate) - states_x[i, j]) / 1e-3
+        filled[i, :used] = positions[start:]
+        filled[i, used:] = positions[-1]
+        states_x[i, used:] = states_x[i, used - 1]
+    return RecordingTarget(
+        names=names,
+        markers=markers,
+        driven=driven,
+        start=start,
+        times=times.astype(dtype),
+        x=x.astype(dtype),
+        filled=filled.astype(dtype),
+        states_x=states_x.astype(dtype),
+        states_v=states_v.astype(dtype),
+        lengths=lengths,
+        dt=float(model.dt),
+        loss=loss,
+        huber_scale=float(huber_scale),
+    )
+
+
+def _smoothed(t, x, seen, half: int):
+    """(positions, velocities) (F, M, 3) of gap-filled markers `x`: as recorded with backward
+    differences (frame 0 at rest) when `half` is 0, else each frame's least-squares quadratic
+    through the seen frames within `half` frames either side, evaluated there."""
+    if half == 0:
+        velocities = np.zeros_like(x)
+        velocities[1:] = np.diff(x, axis=0) / np.diff(t)[:, None, None]
+        return x, velocities
+    count = t.shape[0]
+    positions, velocities = np.empty_like(x), np.empty_like(x)
+    for j in range(count):
+        window = np.arange(max(j - half, 0), min(j + half + 1, count))
+        h = t[window] - t[j]
+        basis = np.stack([np.ones_like(h), h, h * h], axis=1)  # (W, 3)
+        weight = np.where(seen[window], 1.0, 1e-3)  # (W, M); gaps count a little (filled)
+        normal = np.einsum("wm,wa,wb->mab", weight, basis, basis) + 1e-12 * np.eye(3)
+        rhs = np.einsum("wm,wa,wmk->mak", weight, basis, x[window])
+        coefficients = np.linalg.solve(normal, rhs)  # (M, 3 coefficients, 3 axes)
+        positions[j], velocities[j] = coefficients[:, 0], coefficients[:, 1]
+    return positions, velocities
+
+
+def _check_indices(field, indices, n):
+    if indices.size and (indices.min() < 0 or indices.max() >= n):
+        bad = int(indices[(indices < 0) | (indices >= n)][0])
+        raise InputError(field, f"particle {bad} is out of range 0..{n - 1}", "give indices of the scene's particles")
+
+
+def _fill_gaps(name, rec, driven_markers, start) -> np.ndarray:
+    """Marker positions with every gap interpolated linearly in time; a driven marker lost at
+    the first used frame or the last is an error (its path there is unknown)."""
+    x = np.array(rec.x)
+    seen = rec.seen
+    first = max(start - 1, 0)
+    for k in range(rec.marker_count):
+        ok = seen[:, k]
+        if k in driven_markers and not (ok[first] and ok[-1]):
+            lost = np.nonzero(~ok)[0]
+            edge = lost[(lost <= first) | (lost >= rec.frame_count - 1)]
+            label = rec.markers[k]
+            raise InputError(
+                "driven",
+                f"driven marker {label!r} of {name} is not seen at frame(s) {', '.join(map(str, edge[:5]))}",
+                "start later, or trim the recording to frames where the driven markers are seen",
+            )
+        if not ok.all():
+            for axis in range(3):
+                x[~ok, k, axis] = np.interp(rec.t[~ok], rec.t[ok], rec.x[ok, k, axis])
+    return x
+
+
+def spread(rest: np.ndarray, markers: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """All particles' positions from marker positions `seen` (M, 3) by the start rule
+    (module docstring): markers exact, rigid best fit plus inverse-square-distance
+    weighted marker displacements elsewhere."""
+    anchor = rest[markers]
+    if markers.size >= 3:
+        ca, cs = anchor.mean(axis=0), seen.mean(axis=0)
+        u, _, vt = np.linalg.svd((anchor - ca).T @ (seen - cs))
+        flip = np.sign(np.linalg.det(u @ vt)) or 1.0
+        rotation = (u @ np.diag([1.0, 1.0, flip]) @ vt).T
+        moved = (rest - ca) @ rotation.T + cs
+    else:
+        moved = rest + (seen - anchor).mean(axis=0)
+    residual = seen - moved[markers]
+    distance2 = np.sum((rest[:, None, :] - anchor[None]) ** 2, axis=-1)
+    weights = 1.0 / np.maximum(distance2, 1e-300)
+    weights /= weights.sum(axis=1, keepdims=True)
+    out = moved + weights @ residual
+    out[markers] = seen
+    return out
+
+
+# --- the fit's functions on a target ------------------------------------------------------
+
+
+def target_data(target: RecordingTarget) -> dict:
+    seen = np.isfinite(target.x).all(axis=-1)
+    return {
+        "times": jnp.asarray(target.times),
+        "x": jnp.asarray(np.where(seen[..., None], target.x, 0.0)),
+        "seen": jnp.asarray(seen),
+        "filled": jnp.asarray(target.filled),
+        "states_x": jnp.asarray(target.states_x),
+        "states_v": jnp.asarray(target.states_v),
+    }
+
+
+def _carried(target):
+    return np.array([int(np.nonzero(target.markers == p)[0][0]) for p in target.driven], dtype=np.int64)
+
+
+def _segment_steps(target, first: int, length: int) -> int:
+    """Steps covering `length` frames from frame `first` in every recording."""
+    last = np.minimum(first + length, target.frame_count - 1)
+    return steps_to_reach(float(np.max(target.times[:, last] - target.times[:, first])), target.dt)
+
+
+def markers_simulated(model, params, target: RecordingTarget, times, filled, x0, v0, steps: int, at):
+    """Simulated marker positions (K, M, 3) at times `at` (K,) of one recording, from state
+    (x0, v0) at `times[0]`, its driven particles along `filled`'s driven markers."""
+    drive = Drive(particles=tuple(int(p) for p in target.driven), t=times - times[0], x=filled[:, _carried(target)])
+    if len(target.driven) == 0:
+        drive = Drive(particles=(), t=times[:2] - times[0], x=filled[:2, :0])
+    _, (x, _) = driven_simulate(model, params, State(x=x0, v=v0), drive, 0.0, steps, 1, target.markers)
+    path = jnp.concatenate([x0[target.markers][None], x])  # (steps + 1, M, 3) at n dt
+    s = (at - times[0]) / model.dt
+    k = jnp.clip(jnp.floor(s).astype(jnp.int32), 0, steps - 1)
+    w = jnp.clip(s - k, 0.0, 1.0)[:, None, None]
+    return (1.0 - w) * path[k] + w * path[k + 1]
+
+
+def misfit_function(scene, target: RecordingTarget, names, frames: int):
+    """misfit(theta, data): simulated minus seen marker positions over frames 1..`frames`
+    of every recording, zero where unseen, (R, frames, M, 3)."""
+    model, base = scene.model, scene.params
+    steps = _segment_steps(target, 0, frames)
+
+    def one(params, times, x, seen, filled, x0, v0):
+        simulated = markers_simulated(model, params, target, times, filled, x0, v0, steps, times[1 : frames + 1])
+        return jnp.where(seen[1 : frames + 1, :, None], simulated - x[1 : frames + 1], 0.0)
+
+    def misfit(theta, data):
+        params = model.params_with(base, {n: jnp.exp(theta[n]) for n in names})
+        run = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0, 0))
+        return run(
+            params,
+            data["times"],
+            data["x"],
+            data["seen"],
+            data["filled"],
+            data["states_x"][:, 0],
+            data["states_v"][:, 0],
+        )
+
+    return misfit
+
+
+def penalty(target: RecordingTarget, r, seen):
+    """The loss of residuals `r` (..., 3) where `seen` (...): mean over seen coordinates."""
+    if target.loss == "l1":
+        values = jnp.abs(r)
+    elif target.loss == "huber":
+        a, d = jnp.abs(r), target.huber_scale
+        values = jnp.where(a <= d, 0.5 * r**2, d * (a - 0.5 * d))
+    else:
+        values = r**2
+    return jnp.sum(values) / jnp.maximum(3.0 * jnp.sum(seen), 1.0)
+
+
+def loss_function(scene, target: RecordingTarget, names, stage):
+    """loss(theta, data) of one stage: direct/ensemble over `stage.frames` frames, or
+    shooting segments of `stage.frames` frames each from the start rule's states."""
+    model, base = scene.model, scene.params
+    if stage.kind in ("direct", "ensemble"):
+        misfit = misfit_function(scene, target, names, stage.frames)
+        return lambda theta, data: penalty(target, misfit(theta, data), data["seen"][:, 1 : stage.frames + 1])
+    length = stage.frames
+    firsts = np.arange(0, target.frame_count - 1, length)
+    steps = max(_segment_steps(target, int(f), length) for f in firsts)
+    picks = np.minimum(firsts[:, None] + np.arange(length + 1)[None], target.frame_count - 1)  # (S, length + 1)
+
+    def one(params, times, x, seen, filled, sx, sv):
+        def segment(pick):
+            at = times[pick[1:]]
+            simulated = markers_simulated(
+                model, params, target, times[pick], filled[pick], sx[pick[0]], sv[pick[0]], steps, at
+            )
+            valid = seen[pick[1:]] & (pick[1:] > pick[:-1])[:, None]  # padding repeats the last frame
+            return jnp.where(valid[..., None], simulated - x[pick[1:]], 0.0), valid
+
+        return jax.vmap(segment)(jnp.asarray(picks))
+
+    def loss(theta, data):
+        params = model.params_with(base, {n: jnp.exp(theta[n]) for n in names})
+        run = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0, 0))
+        r, valid = run(
+            params, data["times"], data["x"], data["seen"], data["filled"], data["states_x"], data["states_v"]
+        )
+        return penalty(target, r, valid)
+
+    return loss
+
+
+def residual_function(scene, target: RecordingTarget, names, values: dict):
+    """(flat log parameters, unravel, residuals(flat) -> (n,)) over every recording's whole length."""
+    from jax.flatten_util import ravel_pytree
+
+    theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
+    flat, unravel = ravel_pytree(theta)
+    forward = dataclasses.replace(scene, model=scene.model.forward_mode())  # Jacobians are taken with jacfwd
+    misfit = misfit_function(forward, target, names, target.frame_count - 1)
+    data = target_data(target)
+    return flat, unravel, lambda vector: misfit(unravel(vector), data).reshape(-1)
