@@ -225,9 +225,9 @@ def _fill_gaps(name, rec, driven_markers, start) -> np.ndarray:
     first = max(start - 1, 0)
     for k in range(rec.marker_count):
         ok = seen[:, k]
-        if k in driven_markers and not (ok[first] and ok[-1]):
+        if k in driven_markers and not (ok[first : start + 1].all() and ok[-1]):
             lost = np.nonzero(~ok)[0]
-            edge = lost[(lost <= first) | (lost >= rec.frame_count - 1)]
+            edge = lost[(lost <= start) | (lost >= rec.frame_count - 1)]
             label = rec.markers[k]
             raise InputError(
                 "driven",

@@ -123,7 +123,7 @@ def driven_simulate(model, params, state: State, drive: Drive, t0, frames: int, 
     """
     stepper = particle_stepper(model)
     count, dt = state.x.shape[0], model.dt
-    index = jnp.asarray(drive.particles)
+    index = jnp.asarray(drive.particles, dtype=jnp.int32)
     driven = jnp.zeros((count, 1), bool).at[index].set(True)
     observed = slice(None) if observed is None else jnp.asarray(observed)
     t0 = jnp.asarray(t0, state.x.dtype)

@@ -1,0 +1,196 @@
+"""Fitting recordings and predicting them: frame-time interpolation against a hand
+calculation, gradients by finite differences, a fit of noisy positions-only recordings
+made by the same model, `jaxspring fit`/`predict` on recording files, and bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxspring as js
+from jaxspring.cli import main
+from jaxspring.fit.recordings import loss_function, target_data
+from jaxspring.fit.settings import Stage
+
+N = 6
+ROPE = {
+    "name": "rope",
+    "dt": 0.002,
+    "physics": {"ks": {"stretch": 300.0, "bend": 2.0}, "kd": {"stretch": 0.5, "bend": 0.05}, "cd": 0.02},
+    "particles": {"x": [[0.1 * i, 0.0, 0.0] for i in range(N)], "mass": 0.03, "drag": True},
+    "springs": [
+        {"name": "stretch", "pairs": [[i, i + 1] for i in range(N - 1)]},
+        {"name": "bend", "pairs": [[i, i + 2] for i in range(N - 2)]},
+    ],
+}
+TRUTH = {"ks.stretch": 400.0, "kd.stretch": 1.0, "cd": 0.05}
+
+
+@pytest.fixture(scope="module")
+def rope():
+    return js.scene_from_dict(ROPE)
+
+
+def make_recordings(scene, count, frames, noise, seed=0):
+    """Recordings of `scene` with TRUTH: both ends moved along smooth paths, 100 Hz, markers on every particle."""
+    rng = np.random.default_rng(seed)
+    params = scene.model.params_with(scene.params, TRUTH)
+    rest = np.asarray(scene.state.x)[[0, N - 1]]
+    out = []
+    for _ in range(count):
+        t = np.arange(frames) * 0.01
+        freq, amp = rng.uniform(0.8, 1.6, (2, 3)), rng.uniform(0.03, 0.08, (2, 3))
+        ends = rest + amp * np.sin(2 * np.pi * freq * t[:, None, None]) * (1 - np.exp(-((t / 0.2) ** 2)))[:, None, None]
+        drive = js.Drive(particles=(0, N - 1), t=jnp.asarray(t), x=jnp.asarray(ends))
+        traj = js.rollout(scene.model, params, scene.state, steps=(frames - 1) * 5, save_every=5, drive=drive)
+        x = np.asarray(traj.x) + rng.normal(0.0, noise, (frames, N, 3))
+        x[40:44, 2] = np.nan  # a marker lost for 4 frames
+        out.append(js.Recording(t=t + 2.0, x=x))
+    return out
+
+
+def test_frames_between_steps_are_interpolated_as_by_hand():
+    """Free fall under semi-implicit Euler: x_n = x0 + n dt v0 + g dt^2 n (n + 1) / 2; a frame
+    at time s between steps n and n + 1 sees x_n + (s / dt - n) (x_{n+1} - x_n)."""
+    scene = js.scene_from_dict(
+        {
+            "name": "fall",
+            "dt": 0.01,
+            "physics": {"ks": 10.0, "kd": 0.0},
+            "particles": {"x": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], "mass": 1.0},
+            "springs": {"pairs": [[0, 1]]},
+        }
+    )
+    t = np.array([0.0, 0.01, 0.0137, 0.05, 0.0912, 0.2])
+    g, x0 = -9.81, np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    recorded = np.repeat(x0[None], len(t), axis=0)
+    recorded[1, :, 1] = g * 0.01**2  # frame 1 says: one step of fall, so v at frame 1 is g dt
+    out = js.predict(scene, {}, [js.Recording(t=t, x=recorded)], start=1)[0]
+
+    def by_hand(s):  # from frame 1 (one step fallen, v = g dt) s seconds on
+        n = np.floor(s / 0.01 + 1e-9)
+        steps = lambda k: g * 0.01**2 * (1 + k) + g * 0.01**2 * k * (k + 1) / 2  # noqa: E731
+        return steps(n) + (s / 0.01 - n) * (steps(n + 1) - steps(n))
+
+    expected = [by_hand(s - 0.01) for s in t[1:]]
+    np.testing.assert_allclose(out.x[1:, 0, 1], expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(out.x[1:, 1, 1], expected, rtol=1e-12, atol=1e-15)
+
+
+def test_recording_loss_gradient_matches_finite_differences(rope):
+    recs = make_recordings(rope, 2, 40, noise=1e-3)
+    target = js.recording_target(rope, recs, driven=[0, N - 1], smooth=3, loss="huber", huber_scale=1e-3)
+    loss = jax.jit(loss_function(rope, target, ["ks.stretch", "cd"], Stage("direct", 39)))
+    data = target_data(target)
+    theta = {"ks.stretch": jnp.log(350.0), "cd": jnp.log(0.04)}
+    grad = jax.grad(loss)(theta, data)
+    for name in theta:
+        h = 1e-5
+        up = loss({**theta, name: theta[name] + h}, data)
+        down = loss({**theta, name: theta[name] - h}, data)
+        np.testing.assert_allclose(grad[name], (up - down) / (2 * h), rtol=1e-5)
+
+
+def test_same_model_recordings_give_back_stiffness_and_drag(rope):
+    """Positions only, 1 mm noise on every frame, velocities unknown, ends driven."""
+    recs = make_recordings(rope, 3, 150, noise=1e-3)
+    target = js.recording_target(rope, recs, driven=[0, N - 1], start=1, smooth=5)
+    init = {"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}
+    result = js.fit(rope, target, list(TRUTH), init=init, iterations=60)
+    assert abs(float(result.final["ks.stretch"]) / 400.0 - 1) < 0.02
+    assert abs(float(result.final["cd"]) / 0.05 - 1) < 0.05
+    # kd comes out ~30% high: noise in the start states and driven paths excites motion it damps away
+    assert abs(float(result.final["kd.stretch"]) / 1.0 - 1) < 0.5
+    held = make_recordings(rope, 1, 150, noise=1e-3, seed=7)
+    fitted = js.predict(rope, result.final, held, driven=[0, N - 1], smooth=5)[0]
+    frozen = np.linalg.norm(held[0].x[2:] - held[0].x[1], axis=-1)
+    assert fitted.mean_absolute_error < 0.3 * np.nanmean(frozen[:, 1:-1])
+    assert fitted.mean_absolute_error < 3e-3
+
+
+@pytest.fixture(scope="module")
+def files(rope, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("recordings")
+    for i, rec in enumerate(make_recordings(rope, 3, 60, noise=5e-4)):
+        js.save_recording(folder / ("held.h5" if i == 2 else f"take{i}.h5"), rec)
+    (folder / "rope.toml").write_text(_toml(ROPE))
+    experiment = """scene = "rope.toml"
+[target]
+recordings = ["take*.h5"]
+driven = [0, 5]
+start = 1
+smooth = 3
+[fit]
+params = ["ks.stretch", "cd"]
+init = { "ks.stretch" = 300.0, cd = 0.03 }
+iterations = 15
+[evaluate]
+recordings = ["held.h5"]
+"""
+    (folder / "fit.toml").write_text(experiment)
+    return folder
+
+
+def _toml(scene: dict) -> str:
+    springs = "".join(f'\n[[springs]]\nname = "{s["name"]}"\npairs = {s["pairs"]}\n' for s in scene["springs"])
+    return (
+        f'name = "rope"\ndt = {scene["dt"]}\n[physics]\nks = {{ stretch = 300.0, bend = 2.0 }}\n'
+        "kd = { stretch = 0.5, bend = 0.05 }\ncd = 0.02\n"
+        f"[particles]\nx = {scene['particles']['x']}\nmass = 0.03\ndrag = true\n{springs}"
+    )
+
+
+def test_fit_and_predict_recording_files(files, capsys):
+    out = files / "rope.fit.h5"
+    assert main(["fit", str(files / "fit.toml"), "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "held-out" in printed and "held " in printed
+    assert main(["predict", str(out), str(files / "held.h5"), "--out-dir", str(files / "pred"), "--bands", "8"]) == 0
+    printed = capsys.readouterr().out
+    assert "95% band holds" in printed
+    predicted, recorded = js.load_recording(files / "pred" / "held.h5"), js.load_recording(files / "held.h5")
+    np.testing.assert_array_equal(predicted.t, recorded.t)
+    np.testing.assert_array_equal(predicted.x[:1], recorded.x[:1])  # frames before start copied
+    error = np.nanmean(np.linalg.norm(predicted.x[2:] - recorded.x[2:], axis=-1))
+    assert error < 3e-3
+    assert f"{1e3 * error:.3f}" in printed  # the printed mean absolute error is this file's
+    assert (files / "pred" / "held.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"driven = [0, 5]": "driven = [0, 9]"}, "out of range"),
+        ({"start = 1": "start = 59"}, "not before the last frame"),
+        ({'recordings = ["take*.h5"]': 'recordings = ["nothing*.h5"]'}, "matches no file"),
+        ({"driven = [0, 5]": "markers = [0, 1, 2]\ndriven = [0]"}, "3 particles but the recordings have 6"),
+        ({'"ks.stretch", "cd"]': '"ks.twist", "cd"]', '"ks.stretch" = 300.0, ': ""}, "no parameter 'ks.twist'"),
+        ({'loss = "mse"': "", "iterations = 15": 'iterations = 15\nloss = "l3"'}, "unknown loss"),
+    ],
+)
+def test_bad_recording_experiments_fail_in_one_line_without_files(files, change, message, capsys, tmp_path):
+    text = (files / "fit.toml").read_text()
+    for old, new in change.items():
+        text = text.replace(old, new)
+    experiment = files / f"bad_{abs(hash(message))}.toml"
+    experiment.write_text(text)
+    out = tmp_path / "bad.fit.h5"
+    assert main(["fit", str(experiment), "--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert message in error and "\n" not in error
+    assert not out.exists()
+
+
+def test_recordings_of_different_marker_counts_are_refused(rope):
+    recs = make_recordings(rope, 1, 20, noise=0.0)
+    fewer = js.Recording(t=recs[0].t, x=recs[0].x[:, :4])
+    with pytest.raises(js.InputError, match="differ in marker count"):
+        js.recording_target(rope, [recs[0], fewer], driven=[0])
+
+
+def test_a_driven_marker_lost_at_the_start_is_named(rope):
+    rec = make_recordings(rope, 1, 20, noise=0.0)[0]
+    x = np.array(rec.x)
+    x[0:2, 5] = np.nan
+    with pytest.raises(js.InputError, match=r"driven marker 'm5' of recording 0 is not seen at frame\(s\) 0, 1"):
+        js.recording_target(rope, [js.Recording(t=rec.t, x=x)], driven=[0, 5])
