@@ -217,7 +217,7 @@ def write_experiment(path, scene, n, ks, kd, cd):
 recordings = ["train/*.h5"]
 markers = {list(range(0, n, (n - 1) // (N_MARKERS - 1)))}     # particle carrying marker k
 driven = [0, {n - 1}]                 # PARTICLE indices moved as their markers were recorded
-start = 1
+start = 5
 smooth = 5                            # start states and driven paths from 11-frame quadratic fits
 [fit]
 params = ["ks.stretch", "kd.stretch", "ks.bend", "cd"]

@@ -20,6 +20,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring.cli import main
+from jaxspring.io.scene import resolve_scene_path
 
 
 def _jaxspring(*args, cwd):
@@ -239,3 +240,89 @@ def test_scene_changes_that_are_not_numbers(scenes):
     springs = scene.model.spring_count
     with pytest.raises(js.InputError, match=rf"^ks: has shape \({springs}, 1\); give a scalar or one value per spring"):
         scene.with_params(ks=np.full((springs, 1), 1000.0))
+
+
+def _mutated(source, folder, name, mutate):
+    """A copy of the trajectory file `source` changed by `mutate(h5py.File)`."""
+    path = folder / f"{name}.h5"
+    shutil.copy(source, path)
+    with h5py.File(path, "r+") as f:
+        mutate(f)
+    return path
+
+
+def _replace(dataset, data):
+    def mutate(f):
+        if dataset in f:
+            del f[dataset]
+        f.create_dataset(dataset, data=data)
+
+    return mutate
+
+
+MALFORMED = {
+    "zero frames": (_replace("trajectory/x", np.zeros((0, 20, 3))), "no frames"),
+    "nan t": (lambda f: f["trajectory/t"].__setitem__(3, np.nan), "not finite"),
+    "decreasing t": (_replace("trajectory/t", np.linspace(1.0, 0.0, 21)), "strictly increasing"),
+    "zero t": (_replace("trajectory/t", np.zeros(21)), "strictly increasing"),
+    "rest length": (_replace("topology/rest_length", np.ones(3)), "rest_length"),
+    "mass (N, 1)": (_replace("topology/mass", np.ones((20, 1))), "topology/mass"),
+    "faces": (_replace("topology/faces", np.array([[0, 1, 99]], dtype=np.int32)), "face index"),
+    "lattice": (lambda f: f["topology"].attrs.__setitem__("lattice_shape", np.array([7])), "lattice_shape"),
+    "bytes ks": (_replace("params/ks", np.bytes_(b"stiff")), "not numeric"),
+    "group as dataset": (lambda f: (f.__delitem__("topology"), f.create_dataset("topology", data=1.0)), "malformed"),
+    "string dt": (lambda f: f.attrs.__setitem__("dt", "fast"), "malformed"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED))
+def test_malformed_trajectory_files_are_refused_in_one_line(float32_recording, tmp_path, capsys, case):
+    mutate, word = MALFORMED[case]
+    path = _mutated(float32_recording / "rec.h5", tmp_path, "bad", mutate)
+    _refused(capsys, tmp_path, "render", path, "--out", tmp_path / "bad.png", naming=(word,))
+
+
+def test_check_never_says_ok_about_a_scene_that_blows_up(capsys, tmp_path):
+    """Huge stiffness or damping: the estimate stays finite and says the scene would blow up
+    (exit 1); masses so small that the estimate overflows are refused (exit 2)."""
+    for value in ("ks=1e300", "kd=1e300", "ks=1e200"):
+        assert main(["check", "chain", "--set", value]) == 1, value
+        captured = capsys.readouterr()
+        assert "ok:" not in captured.out and "expect a blow-up" in captured.err, captured
+    scene = tmp_path / "light.toml"
+    text = resolve_scene_path("chain").read_text()
+    scene.write_text(text.replace("mass = 1.0", "mass = 1e-320"))
+    _refused(capsys, tmp_path, "check", scene, naming=("overflows",))
+
+
+def test_a_state_of_the_wrong_shape_is_named(scenes):
+    scene = scenes["chain"]
+    wrong = js.State(x=jnp.zeros((3, 21)), v=jnp.zeros((3, 21)))
+    with pytest.raises(js.InputError, match=r"state.x: has shape \(3, 21\) but the model has 20 particles"):
+        js.rollout(scene.model, scene.params, wrong, steps=10)
+
+
+def test_a_per_spring_fit_from_a_scalar_scene_value(scenes):
+    """The start value's shape decides what is fitted (README), also when the scene's ks is one number."""
+    chain = js.load_scene("chain")
+    obs = js.synthetic_observations(chain, {"ks": 1000.0}, 100, 10)
+    result = js.fit(chain, obs, ["ks"], init={"ks": np.full(19, 900.0)}, iterations=3, identify=False)
+    assert np.shape(result.final["ks"]) == (19,)
+    with pytest.raises(js.InputError, match=r"ks: has shape \(7,\); give a scalar or one value per spring \(19\)"):
+        js.fit(chain, obs, ["ks"], init={"ks": np.full(7, 900.0)}, iterations=1)
+
+
+def test_stale_temporary_files_of_killed_writes_are_removed(tmp_path):
+    from jaxspring.io.trajectory import atomic_path
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".out.h5.{dead.pid}.x1.tmp.h5"
+    live = tmp_path / f".out.h5.{os.getpid()}.x2.tmp.h5"  # a write in progress
+    other = tmp_path / f".other.h5.{dead.pid}.x3.tmp.h5"
+    for path in (stale, live, other):
+        path.write_bytes(b"partial")
+    with atomic_path(tmp_path / "out.h5") as tmp:
+        Path(tmp).write_bytes(b"done")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other.name, "out.h5"])
+    assert (tmp_path / "out.h5").read_bytes() == b"done"

@@ -19,6 +19,15 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parent.parent / "notebooks").glob("*.ipynb"))
 
 EXPECTED = {
+    "05_recordings.ipynb": [
+        "driven_ends_follow_their_paths",
+        "recording_file_round_trip",
+        "fit_close_to_truth",
+        "errors_by_hand",
+        "covariance_matches_standard_errors",
+        "prediction_beats_frozen",
+        "band_holds_most",
+    ],
     "01_quickstart.ipynb": [
         "numpy_reference",
         "energy_by_hand",

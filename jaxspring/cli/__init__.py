@@ -31,8 +31,16 @@ def build_parser() -> Parser:
 def main(argv=None) -> int:
     """Entry point of the `jaxspring` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
+    import warnings
+
+    import numpy as np
+
     from ..errors import JaxspringError
 
+    # numerical trouble is reported by the commands in one line; NumPy's own warnings would
+    # turn that line into several
+    warnings.simplefilter("ignore", RuntimeWarning)
+    np.seterr(all="ignore")
     try:
         if getattr(args, "dtype", "float32") == "float64" or (args.command == "bench" and args.kind == "accuracy"):
             import jax

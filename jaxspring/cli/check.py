@@ -21,11 +21,22 @@ def add_parser(sub):
 
 
 def command(args):
+    import math
+
+    from ..errors import InputError
     from ..sim.stability import estimate_stability
 
     scene, _, _ = prepare_scene(args)
     stability = estimate_stability(scene.model, scene.params, scene.state)
     m = scene.model
+    numbers = (stability.omega_max, stability.damping_max, stability.margin)
+    if not all(math.isfinite(n) for n in numbers) or stability.omega_max * m.dt > 1e150:
+        raise InputError(
+            "scene",
+            f"its stability estimate overflows (omega_max {stability.omega_max:.3g} rad/s, "
+            f"damping rate {stability.damping_max:.3g} 1/s): no time step can run it",
+            "give physical stiffness, damping and masses",
+        )
     print(
         f"{scene.name}: {m.particle_count} particles, {m.spring_count} springs, terms {', '.join(m.terms)}; "
         f"dt {m.dt:g} s, integrator {m.integrator}"

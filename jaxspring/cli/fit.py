@@ -230,9 +230,12 @@ def _evaluate(experiment, result):
 
 def print_errors(title, predictions):
     """One line per prediction (mean absolute and RMS marker error after its start) and their means."""
-    print(f"{title:<24} {'mean abs. error [mm]':>21} {'RMS error [mm]':>15}")
+    print(f"{title:<24} {'mean abs. error [mm]':>21} {'RMS error [mm]':>15} {'frozen at start [mm]':>21}")
     for p in predictions:
-        print(f"{p.name:<24} {1e3 * p.mean_absolute_error:>21.3f} {1e3 * p.rms_error:>15.3f}")
-    mae = np.mean([p.mean_absolute_error for p in predictions])
-    rms = np.mean([p.rms_error for p in predictions])
-    print(f"{'mean':<24} {1e3 * mae:>21.3f} {1e3 * rms:>15.3f}")
+        print(
+            f"{p.name:<24} {1e3 * p.mean_absolute_error:>21.3f} {1e3 * p.rms_error:>15.3f} {1e3 * p.frozen_error:>21.3f}"
+        )
+    means = [
+        np.mean([getattr(p, k) for p in predictions]) for k in ("mean_absolute_error", "rms_error", "frozen_error")
+    ]
+    print(f"{'mean':<24} {1e3 * means[0]:>21.3f} {1e3 * means[1]:>15.3f} {1e3 * means[2]:>21.3f}")

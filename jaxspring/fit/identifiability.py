@@ -34,6 +34,28 @@ class Identifiability:
     noise_std: float
     warnings: tuple
 
+    def covariance(self) -> dict:
+        """{"names": labels, "matrix": (P, P)}: the covariance of the log parameter values
+        (what `js.predict` draws its bands from).
+
+        Example:
+            >>> js.predict(scene, result.final, recs, covariance=result.identifiability.covariance())
+        """
+        relative = np.concatenate(
+            [np.asarray(self.relative_standard_error[n], dtype=float).reshape(-1) for n in unique_names(self.names)]
+        )
+        return {"names": list(self.names), "matrix": self.correlation * np.outer(relative, relative)}
+
+
+def unique_names(labels) -> list[str]:
+    """Parameter names of labels, in order ("cd", "m[0]", "m[1]" -> "cd", "m")."""
+    names = []
+    for label in labels:
+        name = label.split("[")[0]
+        if name not in names:
+            names.append(name)
+    return names
+
 
 class _PolishSteps(list):
     """(loss, values) before each accepted Gauss-Newton step, plus the final values and loss."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 
@@ -18,6 +19,7 @@ from .ensemble import ensemble_step_function
 from .identifiability import gauss_newton_polish, identifiability
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
+from .recordings import RecordingTarget
 from .results import FitProgress, FitResult
 from .settings import FitSettings, Stage, plan_stages
 
@@ -92,7 +94,9 @@ def fit_batch(
     `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
     after every iteration (the CLI checkpoints from it). With several devices and a
     member count divisible by their number, the members are split across them
-    (`shard_batch`); the numbers are the same as on one device.
+    (`shard_batch`); otherwise the recordings of a `RecordingTarget`, when their count
+    divides by the devices' (each device simulates its share; the loss sums over all).
+    The numbers are the same as on one device.
 
     Example:
         >>> results = js.fit_batch(scene, [obs], ["ks", "kd"], inits=[{"ks": 300.0}, {"ks": 3000.0}])
@@ -125,14 +129,23 @@ def fit_batch(
     else:
         data = target_data(reference)
     present = scene.model.parameter_values(scene.params)
-    stages = plan_stages(reference, settings, scene, values=sum(int(np.size(present[n])) for n in names))
     start_values = [{n: jnp.asarray(init.get(n, present[n]), dtype=float) for n in names} for init in inits]
+    # the start values' shape decides what is fitted: one value, or one per spring (particle)
+    try:
+        shapes = {n: np.broadcast_shapes(present[n].shape, *(s[n].shape for s in start_values)) for n in names}
+    except ValueError:
+        raise InputError("init", "start values of different shapes", "give each parameter one shape") from None
+    scene.with_values({n: np.ones(shapes[n]) for n in names})  # a shape the parameter cannot take is an InputError
+    stages = plan_stages(reference, settings, scene, values=sum(math.prod(shapes[n]) for n in names))
     if progress is None:
-        theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], present[n].shape)) for s in start_values]) for n in names}
+        theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], shapes[n])) for s in start_values]) for n in names}
         progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
     if jax.device_count() > 1 and members % jax.device_count() == 0:  # members across devices
         progress.theta = shard_batch(progress.theta)
         if batched_data:
+            data = shard_batch(data)
+    elif jax.device_count() > 1 and isinstance(reference, RecordingTarget) and not batched_data:
+        if len(reference.names) % jax.device_count() == 0:  # recordings across devices
             data = shard_batch(data)
     start_clock = time.perf_counter() - progress.wall_s
     while not progress.done:

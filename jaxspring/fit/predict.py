@@ -8,7 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .recordings import RecordingTarget, markers_simulated, recording_target, target_data
+from .identifiability import unique_names
+from .recordings import RecordingTarget, carriers, markers_simulated, recording_target, target_data
 
 
 @dataclasses.dataclass(frozen=True)
@@ -25,6 +26,8 @@ class Prediction:
         rms_error: root-mean-square of that distance [m].
         low, high: the 95% prediction band per marker, frame and axis (None without bands).
         coverage: the fraction of seen marker coordinates after `start` inside the band.
+        frozen_error: the baseline: mean distance [m] when the free markers stay where they were
+            at `start` and the driven ones move as recorded.
     """
 
     name: str
@@ -37,6 +40,7 @@ class Prediction:
     low: np.ndarray | None = None
     high: np.ndarray | None = None
     coverage: float | None = None
+    frozen_error: float | None = None
 
 
 def simulator(scene, target: RecordingTarget):
@@ -66,13 +70,14 @@ def predict(
     names=None,
     covariance=None,
     noise_std: float = 0.0,
-    samples: int = 0,
+    samples: int | None = None,
     seed: int = 0,
 ) -> list[Prediction]:
     """Predict `recordings` with the fitted `values`, from their `start` frames, driven
     particles as recorded; with `samples` > 0 and the fit's `covariance` of the log values
-    (a dict {"names": labels, "matrix": (P, P)}), a 95% band from that many parameter sets
-    drawn from it and run as one batch, widened by +-1.96 `noise_std` (the observation noise).
+    (a dict {"names": labels, "matrix": (P, P)}, see `Identifiability.covariance`), a 95%
+    band from that many parameter sets (default 64 when a covariance is given) drawn from it
+    and run as one batch, widened by +-1.96 `noise_std` (the observation noise).
 
     Example:
         >>> result = js.fit(scene, target, names)
@@ -86,6 +91,7 @@ def predict(
     run = simulator(scene, target)
     simulated = np.asarray(jax.jit(run)(params))
     low = high = None
+    samples = (64 if covariance is not None else 0) if samples is None else int(samples)
     if samples and covariance is not None:
         draws = _draw(values, covariance, samples, seed)
         batch = jax.vmap(lambda v: model.params_with(scene.params, v))(draws)
@@ -99,6 +105,10 @@ def predict(
         x = np.array(rec.x)
         x[start:] = simulated[i, :used]
         d = np.linalg.norm(x[start + 1 :] - rec.x[start + 1 :], axis=-1)
+        frozen = np.repeat(rec.x[start : start + 1], rec.frame_count - start - 1, axis=0)
+        frozen[:, carriers(target)] = rec.x[start + 1 :, carriers(target)]
+        baseline = np.linalg.norm(frozen - rec.x[start + 1 :], axis=-1)
+        baseline = baseline[np.isfinite(d) & np.isfinite(baseline)]
         d = d[np.isfinite(d)]
         band = {}
         if low is not None:
@@ -116,6 +126,7 @@ def predict(
                 start=start,
                 mean_absolute_error=float(d.mean()) if d.size else float("nan"),
                 rms_error=float(np.sqrt(np.mean(d**2))) if d.size else float("nan"),
+                frozen_error=float(baseline.mean()) if baseline.size else float("nan"),
                 **band,
             )
         )
@@ -126,7 +137,7 @@ def _draw(values: dict, covariance: dict, samples: int, seed: int) -> dict:
     """`samples` parameter sets: log values drawn from N(log values, covariance)."""
     labels = list(covariance["names"])
     matrix = np.asarray(covariance["matrix"], dtype=float)
-    centre = np.concatenate([np.log(np.asarray(values[n], dtype=float)).reshape(-1) for n in _names(labels)])
+    centre = np.concatenate([np.log(np.asarray(values[n], dtype=float)).reshape(-1) for n in unique_names(labels)])
     matrix = np.where(np.isfinite(matrix), matrix, 0.0)
     matrix = 0.5 * (matrix + matrix.T)
     # a parameter the data do not determine does not move the markers either: cap its log spread at 1
@@ -135,18 +146,8 @@ def _draw(values: dict, covariance: dict, samples: int, seed: int) -> dict:
     matrix = (vectors * np.maximum(eigenvalues, 0.0)) @ vectors.T
     draws = np.random.default_rng(seed).multivariate_normal(centre, matrix, size=samples, method="eigh")
     out, column = {}, 0
-    for n in _names(labels):
+    for n in unique_names(labels):
         size = int(np.size(values[n]))
         out[n] = jnp.asarray(np.exp(draws[:, column : column + size]).reshape((samples,) + np.shape(values[n])))
         column += size
     return out
-
-
-def _names(labels) -> list[str]:
-    """Parameter names of covariance labels ("ks", "m[0]", "m[1]" -> "ks", "m"), in order."""
-    names = []
-    for label in labels:
-        name = label.split("[")[0]
-        if name not in names:
-            names.append(name)
-    return names

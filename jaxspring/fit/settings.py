@@ -127,7 +127,7 @@ def plan_stages(
         else:
             strategy = "shooting" if observations.full else "curriculum"
     if strategy == "shooting":
-        if not observations.full:
+        if not (observations.full or getattr(observations, "shootable", False)):
             raise InputError(
                 "strategy",
                 "multiple shooting needs full recorded states of every particle",

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FileFormatError, InputError
+from ..fit.identifiability import Identifiability, unique_names
 from ..fit.results import FitProgress, FitResult
 from .trajectory import atomic_path, open_hdf5
 
@@ -146,26 +147,14 @@ def load_fitted(path) -> dict:
         covariance = None
         if "correlation" in group and "standard_error" in group:
             labels = [str(n) for n in group["correlation"].attrs["names"]]
-            relative = np.concatenate(
-                [
-                    np.asarray(group["standard_error"].attrs[n] / final[n], dtype=float).reshape(-1)
-                    for n in _unique(labels)
-                ]
-            )
-            matrix = group["correlation"][()] * np.outer(relative, relative)
-            covariance = {"names": labels, "matrix": matrix}
+            relative = {
+                n: np.asarray(group["standard_error"].attrs[n] / final[n], dtype=float) for n in unique_names(labels)
+            }
+            report = Identifiability({}, relative, group["correlation"][()], tuple(labels), 0.0, ())
+            covariance = report.covariance()
         return {
             "final": final,
             "prediction": json.loads(f.attrs["prediction"]),
             "covariance": covariance,
             "noise_std": float(group.attrs.get("noise_std", 0.0)),
         }
-
-
-def _unique(labels):
-    names = []
-    for label in labels:
-        name = label.split("[")[0]
-        if name not in names:
-            names.append(name)
-    return names

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import glob
 import os
 import tempfile
 from pathlib import Path
@@ -48,7 +49,8 @@ def atomic_path(path):
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise InputError("out", f"folder {str(folder)!r} does not exist", "create it or choose another path")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=folder)
+    _remove_stale(folder, path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=folder)
     os.close(fd)
     try:
         yield tmp
@@ -58,9 +60,44 @@ def atomic_path(path):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
+        _fsync_folder(folder)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _remove_stale(folder: Path, path: Path) -> None:
+    """Delete temporary files of earlier writes to `path` whose process no longer runs (killed
+    mid-write); a write in progress by a live process is left alone."""
+    for stale in folder.glob(f".{glob.escape(path.name)}.*.tmp{glob.escape(path.suffix)}"):
+        pid = stale.name[len(path.name) + 2 :].split(".", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            with contextlib.suppress(OSError):
+                stale.unlink()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make the rename durable: fsync the folder's entry list (where the OS allows)."""
+    try:
+        handle = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(handle)
+    except OSError:
+        pass
+    finally:
+        os.close(handle)
 
 
 def open_hdf5(path: Path, remedy: str) -> h5py.File:
@@ -114,6 +151,32 @@ def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
         traj.create_dataset("v", data=np.asarray(trajectory.v))
 
 
+def _check_trajectory_arrays(path, t, x, v, springs, rest_length, mass, faces, lattice, params) -> None:
+    """One-line errors for a trajectory file whose arrays are inconsistent or not finite."""
+
+    def bad(what: str):
+        return FileFormatError(f"{path}: {what}; re-create the file with `jaxspring run`")
+
+    for name, value in params.items():
+        if not np.issubdtype(np.asarray(value).dtype, np.number):
+            raise bad(f"parameter {name!r} is not numeric")
+    if x.ndim != 3 or x.shape[0] == 0:
+        raise bad(f"the trajectory has no frames (x of shape {x.shape})")
+    if not (np.issubdtype(t.dtype, np.number) and np.all(np.isfinite(t))):
+        raise bad("frame times t are not finite numbers")
+    if t.ndim == 1 and t.shape[0] > 1 and np.any(np.diff(t) <= 0):
+        raise bad("frame times t are not strictly increasing")
+    if mass.ndim != 1:
+        raise bad(f"topology/mass has shape {mass.shape}, expected (N,)")
+    if springs.ndim != 2 or springs.shape[1:] != (2,) or rest_length.shape != (springs.shape[0],):
+        raise bad(f"springs {springs.shape} and rest_length {rest_length.shape} disagree")
+    count = mass.shape[0]
+    if faces.size and (faces.ndim != 2 or faces.min() < 0 or faces.max() >= count):
+        raise bad(f"a face index lies outside 0..{count - 1}")
+    if lattice is not None and (min(lattice, default=0) < 1 or int(np.prod(lattice)) != count):
+        raise bad(f"lattice_shape {lattice} does not hold the {count} particles")
+
+
 def load_trajectory(path) -> tuple[Scene, Trajectory]:
     """Read a trajectory file; returns (scene, trajectory).
 
@@ -158,10 +221,11 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             v = np.asarray(f["trajectory/v"][()])
             integrator, dt = str(f.attrs["integrator"]), float(f.attrs["dt"])
             name = str(f.attrs.get("scene", path.stem))
-        except (KeyError, OSError) as exc:
+        except (KeyError, OSError, TypeError, ValueError, AttributeError) as exc:
             raise FileFormatError(
-                f"{path}: incomplete trajectory file ({exc}); re-create it with `jaxspring run`"
+                f"{path}: incomplete or malformed trajectory file ({exc}); re-create it with `jaxspring run`"
             ) from None
+    _check_trajectory_arrays(path, t, x, v, springs, rest_length, mass, faces, lattice, params)
     unknown = sorted({name.partition(".")[0] for name in params} - set(Params.names()))
     if unknown:
         raise FileFormatError(f"{path}: unknown parameter {unknown[0]!r}; this file was written by a newer jaxspring")

@@ -35,7 +35,7 @@ from ..steppers.base import Generic
 from .state import State, Trajectory
 
 
-@functools.partial(jax.tree_util.register_dataclass, data_fields=["t", "x"], meta_fields=["particles"])
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["t", "x", "v"], meta_fields=["particles"])
 @dataclasses.dataclass(frozen=True)
 class Drive:
     """Driven particles and their paths.
@@ -45,6 +45,8 @@ class Drive:
         t: knot times [s], shape (K,), strictly increasing, K >= 2.
         x: positions at the knots [m], shape (K, D, 3); linear in between, held
             constant outside [t[0], t[-1]].
+        v: optional velocities at the knots [m/s], (K, D, 3): the path is then the cubic
+            Hermite curve through positions and velocities (smooth, no kink at the knots).
 
     Example:
         >>> drive = js.Drive(particles=(0,), t=[0.0, 1.0], x=[[[0.0, 0.0, 0.0]], [[0.1, 0.0, 0.0]]])
@@ -54,13 +56,23 @@ class Drive:
     particles: tuple
     t: jax.Array
     x: jax.Array
+    v: jax.Array | None = None
 
     def at(self, time) -> jax.Array:
         """Positions (D, 3) of the driven particles at `time` (a scalar)."""
         last = self.t.shape[-1] - 2
         k = jnp.clip(jnp.searchsorted(self.t, time, side="right") - 1, 0, last)
-        w = jnp.clip((time - self.t[k]) / (self.t[k + 1] - self.t[k]), 0.0, 1.0)
-        return (1.0 - w) * self.x[k] + w * self.x[k + 1]
+        h = self.t[k + 1] - self.t[k]
+        w = jnp.clip((time - self.t[k]) / h, 0.0, 1.0)
+        if self.v is None:
+            return (1.0 - w) * self.x[k] + w * self.x[k + 1]
+        w2, w3 = w * w, w * w * w
+        return (
+            (2 * w3 - 3 * w2 + 1) * self.x[k]
+            + (w3 - 2 * w2 + w) * h * self.v[k]
+            + (3 * w2 - 2 * w3) * self.x[k + 1]
+            + (w3 - w2) * h * self.v[k + 1]
+        )
 
 
 def make_drive(particles, t, x, particle_count: int, pinned=None) -> Drive:

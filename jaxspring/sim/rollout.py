@@ -92,6 +92,13 @@ def _in_model_precision(model: Model, state: State) -> State:
     """The state promoted to the wider of its own and the model's precisions, which the step
     computes in (a float32 state read from a file meets a float64 model when x64 is on); a
     state already there is returned as is."""
+    expected = (model.particle_count, 3)
+    for field in ("x", "v"):
+        shape = jnp.shape(getattr(state, field))
+        if shape != expected:
+            raise InputError(
+                f"state.{field}", f"has shape {shape} but the model has {expected[0]} particles", f"give {expected}"
+            )
     dtype = jnp.result_type(state.x, state.v, model.mass)
     if state.x.dtype == dtype and state.v.dtype == dtype:
         return state

@@ -162,6 +162,7 @@ def _power_iterations(model, params, state, iterations):
 
         def body(_, q):
             w = apply(q)
+            w = w / jnp.maximum(jnp.max(jnp.abs(w)), 1e-300)  # first to O(1): |w|^2 would overflow at 1e154
             return w / jnp.maximum(jnp.linalg.norm(w), 1e-30)
 
         q = jax.lax.fori_loop(0, iterations, body, q0)
