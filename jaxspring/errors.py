@@ -4,7 +4,23 @@ from __future__ import annotations
 
 
 class JaxspringError(ValueError):
-    """Base class for user-caused errors; the CLI prints them as one line, exit code 2."""
+    """Base class for user-caused errors; the CLI prints them as one line, exit code 2.
+
+    The message is one line by construction: line breaks and runs of spaces in whatever it
+    quotes (an array read from a file, a parser's message) become single spaces, and a quoted
+    value too long to read is cut.
+    """
+
+    def __init__(self, *args):
+        if len(args) == 1 and isinstance(args[0], str):
+            args = (one_line(args[0]),)
+        super().__init__(*args)
+
+
+def one_line(text: str, limit: int = 1000) -> str:
+    """`text` with all whitespace runs as single spaces, cut to `limit` characters."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 class InputError(JaxspringError):

@@ -326,3 +326,57 @@ def test_stale_temporary_files_of_killed_writes_are_removed(tmp_path):
         Path(tmp).write_bytes(b"done")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, other.name, "out.h5"])
     assert (tmp_path / "out.h5").read_bytes() == b"done"
+
+
+def test_work_beyond_memory_or_disk_is_refused_up_front(capsys, tmp_path):
+    huge = tmp_path / "huge.toml"
+    huge.write_text('name = "huge"\ndt = 0.001\n[physics]\nks = 1.0\nkd = 0.0\n[lattice]\nshape = [30000, 30000]\n')
+    _refused(capsys, tmp_path, "run", huge, "--out", tmp_path / "h.h5", naming=("lattice.shape", "900,000,000"))
+    _refused(
+        capsys,
+        tmp_path,
+        "run",
+        "cloth",
+        "--steps",
+        "100000000",
+        "--save-every",
+        "1",
+        "--out",
+        tmp_path / "c.h5",
+        naming=("--steps", "TiB", "--save-every"),
+    )
+    _refused(
+        capsys,
+        tmp_path,
+        "run",
+        "cloth",
+        "--steps",
+        "1000",
+        "--save-every",
+        "1",
+        "--max-memory",
+        "10M",
+        "--out",
+        tmp_path / "c.h5",
+        naming=("--max-memory 10 MiB",),
+    )
+    _refused(
+        capsys, tmp_path, "run", "chain", "--max-memory", "lots", "--out", tmp_path / "c.h5", naming=("--max-memory",)
+    )
+
+
+def test_scene_files_that_are_not_regular_or_too_large_or_too_deep(capsys, tmp_path, monkeypatch):
+    from jaxspring.io import schema
+
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    _refused(capsys, tmp_path, "run", fifo, "--out", tmp_path / "o.h5", naming=("not a regular file",))
+    if Path("/dev/zero").exists():
+        _refused(capsys, tmp_path, "run", "/dev/zero", "--out", tmp_path / "o.h5", naming=("not a regular file",))
+    deep = tmp_path / "deep.toml"
+    deep.write_text('name = "x"\ndt = 0.1\na = ' + "[" * 1000 + "]" * 1000 + "\n")
+    _refused(capsys, tmp_path, "run", deep, "--out", tmp_path / "o.h5", naming=("too deeply",))
+    monkeypatch.setattr(schema, "MAX_TOML_BYTES", 100)
+    large = tmp_path / "large.toml"
+    large.write_text("# " + "x" * 200 + "\n")
+    _refused(capsys, tmp_path, "run", large, "--out", tmp_path / "o.h5", naming=("more than the 100",))

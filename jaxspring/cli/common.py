@@ -28,6 +28,11 @@ BACKEND_HELP = (
 
 def add_common(sub):
     sub.add_argument("--dtype", choices=["float32", "float64"], default="float32", help="floating-point precision")
+    sub.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        help="refuse work estimated to need more memory, e.g. 4G (default: what is free)",
+    )
     sub.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

@@ -33,9 +33,13 @@ def add_parser(sub):
 
 def command(args):
     from ..io.scene import resolve_scene_path
+    from ..resources import check_trajectory, parse_size
 
     scene, steps, save_every = prepare_scene(args)
     out = Path(args.out or f"{scene.name}.h5")
     check_output(out, inputs=[resolve_scene_path(args.scene)])
+    limit = parse_size(args.max_memory) if args.max_memory else None
+    itemsize = 8 if args.dtype == "float64" else 4
+    check_trajectory(steps // save_every, scene.model.particle_count, itemsize, out, limit)
     result = simulate_and_save(scene, steps, save_every, out, args.quiet)
     print(summary(scene, result, out))

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..resources import check_particles
 from ..sim.checks import check_params
 from ..sim.model import make_model
 from ..sim.params import Params
@@ -179,6 +181,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
 
 def _lattice_topology(table: schema.Table, has_drag: bool) -> dict:
     shape = table.take("shape", schema.shape, required=True)
+    check_particles(math.prod(shape), "lattice.shape")
     spacing = table.take("spacing", schema.positive, default=1.0)
     origin = table.take("origin", schema.vector3, default=(0.0, 0.0, 0.0))
     axes_names = table.take("axes", schema.string_list, default=["x", "y", "z"][: len(shape)])

@@ -8,11 +8,15 @@ check function (below) that turns the value into what the loader needs or raises
 from __future__ import annotations
 
 import math
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+
+MAX_TOML_BYTES = 64 * 2**20
+"""The largest scene or experiment file read (64 MiB: ~1 million particles written out)."""
 
 
 def read_toml(path: Path, what: str) -> dict:
@@ -24,7 +28,18 @@ def read_toml(path: Path, what: str) -> dict:
         >>> document = read_toml(Path("scenes/chain.toml"), "scene")
     """
     try:
-        data = path.read_bytes()
+        info = path.stat()
+        if not stat.S_ISREG(info.st_mode):  # a device or a FIFO would be read forever
+            raise InputError(what, "is not a regular file", f"give a {what} TOML file", source=str(path))
+        if info.st_size > MAX_TOML_BYTES:
+            raise InputError(
+                what,
+                f"is {info.st_size:,} bytes, more than the {MAX_TOML_BYTES:,} a {what} file may have",
+                "keep large arrays out of TOML (a lattice, or a trajectory file)",
+                source=str(path),
+            )
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_TOML_BYTES + 1)
     except OSError as exc:
         raise InputError(what, f"cannot read ({exc.strerror})", "check the path", source=str(path)) from None
     try:
@@ -37,6 +52,8 @@ def read_toml(path: Path, what: str) -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError("toml", f"not valid TOML ({exc})", "fix the syntax", source=str(path)) from None
+    except RecursionError:
+        raise InputError("toml", "nests arrays or tables too deeply", "flatten the file", source=str(path)) from None
 
 
 class Table:

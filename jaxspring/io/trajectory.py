@@ -195,7 +195,10 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             raise FileFormatError(
                 f"{path}: not a jaxspring trajectory (format={f.attrs.get('format')!r}); give a file written by `jaxspring run`"
             )
-        version = int(f.attrs.get("format_version", -1))
+        try:
+            version = int(f.attrs.get("format_version", -1))
+        except (TypeError, ValueError):
+            version = str(f.attrs.get("format_version"))
         if version != FORMAT_VERSION:
             raise FileFormatError(
                 f"{path}: format_version {version} is not supported; this jaxspring reads version {FORMAT_VERSION}"
