@@ -30,6 +30,11 @@ def _optimizer(settings: FitSettings):
     return optax.chain(optax.clip_by_global_norm(settings.clip), optax.adam(settings.learning_rate))
 
 
+def _strong(leaf):
+    leaf = jnp.asarray(leaf)
+    return jax.lax.convert_element_type(leaf, leaf.dtype) if leaf.weak_type else leaf
+
+
 def step_function(loss, settings: FitSettings, data_batched: bool):
     optimizer = _optimizer(settings)
 
@@ -44,7 +49,9 @@ def step_function(loss, settings: FitSettings, data_batched: bool):
         return optax.apply_updates(theta, updates), opt_state, value
 
     step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if data_batched else None)))
-    init = jax.jit(jax.vmap(optimizer.init))
+    # strong dtypes: an optimizer state whose leaves start weakly typed (optax's line-search
+    # info) comes back strongly typed from the first step, and the step would compile twice
+    init = jax.jit(jax.vmap(lambda theta: jax.tree_util.tree_map(_strong, optimizer.init(theta))))
     value = jax.jit(jax.vmap(loss, in_axes=(0, 0 if data_batched else None)))
     return step, init, value
 
