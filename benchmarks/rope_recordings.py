@@ -221,6 +221,7 @@ start = 5
 smooth = 5                            # start states and driven paths from 11-frame quadratic fits
 [fit]
 params = ["ks.stretch", "kd.stretch", "ks.bend", "cd"]
+tolerance = 1e-6                      # noisy markers: a 1e-6 relative gain over 6 iterations is done
 init = {init}
 [evaluate]
 recordings = ["held_out/*.h5"]

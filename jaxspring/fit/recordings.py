@@ -78,9 +78,10 @@ class RecordingTarget:
 
     @property
     def full(self) -> bool:
-        """False: no recorded full states. Strategy "auto" then takes the curriculum, since
-        segment starts estimated from noisy markers bias short segments (measured: a
-        34-particle rope's shooting stage walked to a point the full horizon could not leave)."""
+        """False: no recorded full states; strategy "auto" fits recordings over their whole
+        length (see `plan_stages`): segment starts estimated from noisy markers bias short
+        segments (measured: a 34-particle rope's shooting stage walked to a point the full
+        horizon could not leave)."""
         return False
 
     shootable = True  # strategy "shooting" starts its segments from the start rule

@@ -1,0 +1,103 @@
+"""SIGKILL during writes: `jaxspring run` and `jaxspring fit` killed at random moments leave
+the destination absent, the old complete file or the new complete file, never a half file;
+`fit --resume` after every kill ends with exactly the uninterrupted result."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import jaxspring as js
+
+KILLS = 10
+pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
+
+
+def _start(*args, cwd):
+    return subprocess.Popen(
+        [sys.executable, "-m", "jaxspring", *args], cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+
+
+def _timed(*args, cwd) -> float:
+    clock = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "jaxspring", *args], cwd=cwd, capture_output=True, timeout=600)
+    assert done.returncode == 0, done.stderr.decode()[-2000:]
+    return time.perf_counter() - clock
+
+
+def _kill_after(process, seconds) -> bool:
+    """SIGKILL `process` after `seconds` unless it ended; whether it was killed."""
+    try:
+        process.wait(timeout=seconds)
+        return False
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        return True
+
+
+def test_run_killed_at_random_moments_leaves_an_old_or_new_complete_file(tmp_path):
+    rng = np.random.default_rng(3)
+    run = ["run", "chain", "--steps", "3000", "--save-every", "10", "--out", "out.h5", "--quiet"]
+    _timed("run", "chain", "--steps", "1000", "--save-every", "10", "--out", "out.h5", "--quiet", cwd=tmp_path)
+    old = (tmp_path / "out.h5").read_bytes()
+    duration = _timed(*run, cwd=tmp_path)
+    new = (tmp_path / "out.h5").read_bytes()
+    (tmp_path / "out.h5").write_bytes(old)
+    kills = outcomes = 0
+    while kills < KILLS:
+        killed = _kill_after(_start(*run, cwd=tmp_path), rng.uniform(0.2, 1.1) * duration)
+        kills += killed
+        now = (tmp_path / "out.h5").read_bytes()
+        assert now in (old, new) or _complete(tmp_path / "out.h5", 301)
+        outcomes += now == new
+        (tmp_path / "out.h5").write_bytes(old)
+    assert _timed(*run, cwd=tmp_path) > 0  # a later write removes what killed writes left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h5"]
+    print(f"\nrun: {kills} kills, {outcomes} ended with the new file")
+
+
+def _complete(path: Path, frames: int) -> bool:
+    _, trajectory = js.load_trajectory(path)
+    return trajectory.x.shape[0] == frames
+
+
+def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_path):
+    rng = np.random.default_rng(5)
+    experiment = tmp_path / "exp.toml"
+    experiment.write_text(
+        'scene = "mass_spring"\n[target]\nsteps = 400\nsave_every = 10\nnoise = 0.01\n'
+        '[fit]\nparams = ["ks", "kd"]\ninit = { ks = 25.0, kd = 0.02 }\niterations = 40\n'
+    )
+    fit = ["fit", "exp.toml", "--quiet", "--checkpoint-every", "1"]
+    duration = _timed(*fit, "--out", "straight.h5", cwd=tmp_path)
+    kills = 0
+    while True:
+        resume = ["--resume"] if (tmp_path / "killed.h5").exists() else []
+        killed = _kill_after(
+            _start(*fit, "--out", "killed.h5", *resume, cwd=tmp_path), rng.uniform(0.3, 1.0) * duration
+        )
+        kills += killed
+        if (tmp_path / "killed.h5").exists():
+            with h5py.File(tmp_path / "killed.h5") as f:  # every file on disk is complete and readable
+                assert "fit" in f and "config" in f.attrs
+        if not killed and kills >= KILLS:
+            break
+        if not killed:  # finished before the kill: start over to place the next kill
+            (tmp_path / "killed.h5").unlink()
+    assert _final(tmp_path / "killed.h5") == _final(tmp_path / "straight.h5")
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]  # killed writes' leftovers removed
+    print(f"\nfit: {kills} kills, resumed to the uninterrupted result")
+
+
+def _final(path: Path) -> dict:
+    with h5py.File(path) as f:
+        assert bool(f.attrs["done"])
+        return {k: json.dumps(np.asarray(v).tolist()) for k, v in f["fit/final"].attrs.items()}
