@@ -34,16 +34,6 @@ SCRIPT = textwrap.dedent(
     for r, s in zip(results, single):
         for n in ("ks", "kd"):
             assert abs(float(r.final[n]) - float(s.final[n])) <= 1e-9 * abs(float(s.final[n])), (n, r.final, s.final)
-    # one material from recordings: the recordings split over the devices, the same fit
-    import sys; sys.path.insert(0, TESTS)
-    from test_recordings_fit import ROPE, make_recordings
-    rope = js.scene_from_dict(ROPE)
-    target = js.recording_target(rope, make_recordings(rope, 4, 30, noise=5e-4), driven=[0, 5], smooth=3)
-    spread = js.fit(rope, target, ["ks.stretch"], {"ks.stretch": 300.0}, iterations=10, identify=False)
-    with jax.default_device(jax.devices()[0]):
-        alone = js.fit(rope, target, ["ks.stretch"], {"ks.stretch": 300.0}, iterations=10, identify=False)
-    assert abs(float(spread.final["ks.stretch"]) / float(alone.final["ks.stretch"]) - 1) <= 1e-9, (spread.final, alone.final)
-    assert abs(float(alone.final["ks.stretch"]) / 300.0 - 1) > 0.05, alone.final  # it moved
     print("SHARDED-OK")
     """
 )
@@ -51,7 +41,6 @@ SCRIPT = textwrap.dedent(
 
 def test_sharded_batches_match_on_four_cpu_devices():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    script = SCRIPT.replace("TESTS", repr(os.path.dirname(__file__)))
-    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+    done = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "SHARDED-OK" in done.stdout

@@ -95,20 +95,18 @@ class Stepper:
     def step(self, model, params, state, driven=None):
         """One step of `model.dt` on a state in the internal layout.
 
-        Pinned particles hold still (their velocity is taken as zero). `driven`, a mask
+        Pinned particles hold still and leave the step at rest. `driven`, a mask
         broadcasting against the state, marks particles moved from outside: they keep the
         velocity they enter with over the step (see `sim.driven`).
         """
         stepper = self if model.integrator.explicit else self.pure_jax()  # Newton needs forward mode
-        mass, free = stepper.mass_and_free(model)
-        v = jnp.where(free, state.v, 0.0)
-        if driven is not None:
-            v = jnp.where(driven, state.v, v)
-            free = free & ~driven
+        mass, movable = stepper.mass_and_free(model)
+        free = movable if driven is None else movable & ~driven
         x, v = model.integrator.step(
-            lambda x, v: stepper.internal_force(model, params, x, v), mass, free, state.x, v, model.dt
+            lambda x, v: stepper.internal_force(model, params, x, v), mass, free, state.x, state.v, model.dt
         )
-        return state.replace(x=x, v=v)
+        # pinned particles stay where they are and leave the step at rest (as the native kernels do)
+        return state.replace(x=jnp.where(movable, x, state.x), v=jnp.where(movable, v, 0.0))
 
     def advance(self, model, params, state, steps: int):
         """`steps` steps (static) on a state in the internal layout."""
