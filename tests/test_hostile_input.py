@@ -380,3 +380,21 @@ def test_scene_files_that_are_not_regular_or_too_large_or_too_deep(capsys, tmp_p
     large = tmp_path / "large.toml"
     large.write_text("# " + "x" * 200 + "\n")
     _refused(capsys, tmp_path, "run", large, "--out", tmp_path / "o.h5", naming=("more than the 100",))
+
+
+def test_the_blowup_step_does_not_depend_on_save_every(capsys, tmp_path):
+    scene = tmp_path / "jelly.toml"
+    scene.write_text(resolve_scene_path("jelly").read_text().replace("dt = 0.001", "dt = 0.01"))
+    lines = set()
+    for stride in ("1", "20", "40"):
+        out = tmp_path / f"j{stride}.h5"
+        assert main(["run", str(scene), "--steps", "400", "--save-every", stride, "--out", str(out), "--quiet"]) == 2
+        lines.add(capsys.readouterr().err.strip().splitlines()[-1])
+        assert not out.exists()
+    assert len(lines) == 1 and "blew up at step" in lines.pop()
+
+
+def test_a_lattice_spacing_that_underflows_is_refused(capsys, tmp_path):
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(resolve_scene_path("chain").read_text().replace("spacing = 1.0", "spacing = 1e-320"))
+    _refused(capsys, tmp_path, "run", scene, "--out", tmp_path / "t.h5", naming=("spacing", "coincide"))

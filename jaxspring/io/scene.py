@@ -179,10 +179,20 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     )
 
 
+MIN_SPACING = 1e-9
+"""The smallest lattice spacing [m]: below it, rest lengths underflow or round to zero."""
+
+
 def _lattice_topology(table: schema.Table, has_drag: bool) -> dict:
     shape = table.take("shape", schema.shape, required=True)
     check_particles(math.prod(shape), "lattice.shape")
     spacing = table.take("spacing", schema.positive, default=1.0)
+    if spacing < MIN_SPACING:
+        raise InputError(
+            "spacing",
+            f"{spacing:g} m is below {MIN_SPACING:g} m: neighbouring particles would coincide in floating point",
+            "give the spacing in metres, e.g. 0.01",
+        )
     origin = table.take("origin", schema.vector3, default=(0.0, 0.0, 0.0))
     axes_names = table.take("axes", schema.string_list, default=["x", "y", "z"][: len(shape)])
     if (

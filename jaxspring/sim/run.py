@@ -20,7 +20,7 @@ from .stability import (
     first_bad_frame,
     locate_blowup,
 )
-from .state import State, Trajectory
+from .state import Trajectory
 
 CHUNK_STEPS = 2000
 
@@ -107,13 +107,8 @@ def run_scene(
             x, v = np.asarray(x), np.asarray(v)
             bad = first_bad_frame(model, params, x, v, threshold)
             if bad is not None:
-                good = (
-                    State(x=jnp.asarray(xs[-1][-1]), v=jnp.asarray(vs[-1][-1]))
-                    if bad == 0
-                    else State(x=jnp.asarray(x[bad - 1]), v=jnp.asarray(v[bad - 1]))
-                )
-                good_step = (done + bad) * save_every
-                blowup = locate_blowup(model, params, good, good_step, save_every, threshold, stability)
+                # from the start, step by step: the first bad step whatever save_every is
+                blowup = locate_blowup(model, params, state, 0, (done + bad + 1) * save_every, threshold, stability)
                 xs.append(x[:bad])
                 vs.append(v[:bad])
                 done += bad

@@ -234,15 +234,25 @@ def locate_blowup(
     max_steps: int,
     threshold: float,
     stability: StabilityEstimate,
+    chunk: int = 2000,
 ) -> BlowUp:
-    """Re-run step by step from the last good state to find the exact first bad step."""
-    _, x, v = simulate(model, params, good_state, int(max_steps), 1)
-    offset = first_bad_frame(model, params, x, v, threshold)
-    offset = max_steps - 1 if offset is None else offset
-    xs, vs = np.asarray(x[offset]), np.asarray(v[offset])
-    reason = "non-finite state" if not (np.isfinite(xs).all() and np.isfinite(vs).all()) else "energy exploded"
-    step = good_step + offset + 1
-    return BlowUp(step=step, time=step * model.dt, reason=reason, stability=stability)
+    """Re-run step by step from `good_state` (at step `good_step`) for up to `max_steps` steps,
+    in chunks, to find the exact first bad step. Callers start from the initial state, so the
+    step found does not depend on which frames were saved: energy can exceed the threshold
+    between saved frames and fall back below it (contact) before the run diverges."""
+    state, step, remaining = good_state, good_step, int(max_steps)
+    while remaining > 0:
+        count = min(chunk, remaining)
+        end, x, v = simulate(model, params, state, count, 1)
+        offset = first_bad_frame(model, params, x, v, threshold)
+        if offset is not None:
+            xs, vs = np.asarray(x[offset]), np.asarray(v[offset])
+            finite = np.isfinite(xs).all() and np.isfinite(vs).all()
+            reason = "energy exploded" if finite else "non-finite state"
+            first = step + offset + 1
+            return BlowUp(step=first, time=first * model.dt, reason=reason, stability=stability)
+        state, step, remaining = end, step + count, remaining - count
+    return BlowUp(step=step, time=step * model.dt, reason="energy exploded", stability=stability)
 
 
 def find_blowup(model: Model, params: Params, trajectory: Trajectory) -> BlowUp | None:
@@ -266,6 +276,4 @@ def find_blowup(model: Model, params: Params, trajectory: Trajectory) -> BlowUp 
     stability = estimate_stability(model, params, first)
     if bad == 0:
         return BlowUp(0, 0.0, "non-finite initial state", stability)
-    return locate_blowup(
-        model, params, trajectory.frame(bad - 1), (bad - 1) * save_every, save_every, threshold, stability
-    )
+    return locate_blowup(model, params, first, 0, bad * save_every, threshold, stability)
