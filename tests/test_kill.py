@@ -82,7 +82,7 @@ def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_pa
     while kills < KILLS:
         resume = ["--resume"] if (tmp_path / "killed.h5").exists() else []
         killed = _kill_after(
-            _start(*fit, "--out", "killed.h5", *resume, cwd=tmp_path), rng.uniform(0.5, 1.0) * duration
+            _start(*fit, "--out", "killed.h5", *resume, cwd=tmp_path), rng.uniform(0.35, 0.9) * duration
         )
         kills += killed
         if (tmp_path / "killed.h5").exists():
