@@ -47,7 +47,7 @@ def simulator(scene, target: RecordingTarget):
     """params -> simulated marker positions (R, F, M, 3) of every recording of `target` at its
     frames, from its start states, driven particles along their markers (jit- and vmap-able)."""
     data = target_data(target)
-    steps = max(1, int(np.ceil(float(target.times[:, -1].max()) / target.dt - 1e-9)))
+    steps = target.steps
 
     def run(params):
         def one(times, filled, x0, v0):
