@@ -8,6 +8,7 @@ import numpy as np
 
 from .errors import InputError
 from .io.trajectory import atomic_path
+from .resources import check_movie
 from .sim.scene import Scene
 from .sim.state import Trajectory
 
@@ -39,7 +40,15 @@ def save_figure(fig, out) -> Path:
     return out
 
 
-def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frames: int = 60, progress=None) -> Path:
+def render(
+    scene: Scene,
+    trajectory: Trajectory,
+    out,
+    frame: int = -1,
+    max_frames: int = 60,
+    progress=None,
+    max_memory: int | None = None,
+) -> Path:
     """Draw one frame to a PNG or the whole trajectory to a GIF, written atomically.
 
     Scenes with faces are drawn as a shaded triangle soup (jelly surface, cloth),
@@ -50,6 +59,8 @@ def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frame
         frame: which saved frame a PNG shows (negative counts from the end).
         max_frames: a GIF uses at most this many evenly spaced frames.
         progress: optional callable(done, total) for long movies.
+        max_memory: refuse a movie whose pictures need more bytes than this (default: the
+            memory available), before drawing any.
 
     Example:
         >>> scene, traj = js.load_trajectory("cloth.h5")
@@ -71,7 +82,11 @@ def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frame
     if not -frames <= frame < frames:
         raise InputError("frame", f"{frame} is outside 0..{frames - 1}", "choose an existing frame")
 
-    fig = plt.figure(figsize=(6, 5), dpi=90)
+    chosen = np.unique(np.linspace(0, frames - 1, min(max_frames, frames)).round().astype(int))
+    width, height = 6 * 90, 5 * 90
+    if suffix == ".gif":
+        check_movie(len(chosen), width, height, max_memory)
+    fig = plt.figure(figsize=(width / 90, height / 90), dpi=90)
     ax = fig.add_subplot(projection="3d")
     drawer = _Drawer(ax, scene, x, t)
     with atomic_path(out) as tmp:
@@ -79,7 +94,6 @@ def render(scene: Scene, trajectory: Trajectory, out, frame: int = -1, max_frame
             drawer.draw(frame % frames)
             fig.savefig(tmp)
         else:
-            chosen = np.unique(np.linspace(0, frames - 1, min(max_frames, frames)).round().astype(int))
             movie = animation.FuncAnimation(fig, lambda i: drawer.draw(int(i)), frames=chosen, blit=False)
             movie.save(tmp, writer=animation.PillowWriter(fps=15), progress_callback=progress)
     plt.close(fig)

@@ -1,8 +1,10 @@
 """What this machine can hold: up-front memory and disk checks with one-line errors.
 
 A run keeps its frames in memory and writes them to disk; a scene's arrays grow with its
-particle count. Each is estimated before any work starts and refused, with the numbers,
-when it exceeds the memory available (or a `--max-memory` limit) or the disk free.
+particle count; a file is read whole; a fit's iteration needs what XLA plans for it; a
+movie keeps its pictures until it is written. Each is estimated before that work starts
+and refused, with the numbers, when it exceeds the memory available (or a `--max-memory`
+limit) or the disk free.
 """
 
 from __future__ import annotations
@@ -69,6 +71,38 @@ def check_memory(need: int, what: str, field: str, fix: str, limit: int | None =
         raise InputError(field, f"{what} needs ~{human(need)} of memory but {source} {human(have)}", fix)
 
 
+def compiled_memory(compiled) -> int | None:
+    """Bytes XLA plans for one call of a compiled function (arguments, outputs and scratch),
+    or None where the backend does not say."""
+    try:
+        stats = compiled.memory_analysis()
+        return int(
+            stats.temp_size_in_bytes
+            + stats.argument_size_in_bytes
+            + stats.output_size_in_bytes
+            - stats.alias_size_in_bytes
+        )
+    except Exception:  # noqa: BLE001 - an estimate is optional; some backends have none
+        return None
+
+
+def check_compiled(function, args, what: str, field: str, fix: str, limit: int | None = None):
+    """Compile `function` (a `jax.jit`) for `args`, refuse it when XLA's own memory plan exceeds
+    the memory available (or `limit`), and return the compiled function."""
+    compiled = function.lower(*args).compile()
+    need = compiled_memory(compiled)
+    if need is not None:
+        check_memory(need, what, field, fix, limit)
+    return compiled
+
+
+def check_hdf5_read(f, path, limit: int | None = None) -> None:
+    """Refuse reading an open HDF5 file whose datasets together exceed the memory available."""
+    sizes = []
+    f.visititems(lambda _, item: sizes.append(item.size * item.dtype.itemsize) if hasattr(item, "dtype") else None)
+    check_memory(sum(sizes), f"reading {path}", "file", "give a smaller file or free memory", limit)
+
+
 def check_disk(need: int, out: Path, what: str, field: str, fix: str) -> None:
     """Refuse writing `need` bytes to `out` when its folder's disk has less free."""
     folder = out.parent if str(out.parent) else Path(".")
@@ -78,6 +112,17 @@ def check_disk(need: int, out: Path, what: str, field: str, fix: str) -> None:
         return
     if need > free:
         raise InputError(field, f"{what} needs ~{human(need)} of disk but {folder} has {human(free)} free", fix)
+
+
+GIF_BYTES_PER_PIXEL = 8
+"""A movie's frames are kept as RGBA pictures, and quantised copies of them, until written."""
+
+
+def check_movie(frames: int, width: int, height: int, limit: int | None = None) -> None:
+    """Refuse a GIF of `frames` pictures of width x height pixels that cannot be held in memory."""
+    need = frames * width * height * GIF_BYTES_PER_PIXEL
+    what = f"a movie of {frames:,} frames of {width}x{height} pixels"
+    check_memory(need, what, "--max-frames", "draw fewer frames (a smaller --max-frames)", limit)
 
 
 def check_particles(count: int, field: str = "lattice.shape") -> None:

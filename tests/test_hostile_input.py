@@ -365,6 +365,46 @@ def test_work_beyond_memory_or_disk_is_refused_up_front(capsys, tmp_path):
     )
 
 
+def test_fits_and_renders_beyond_memory_are_refused_up_front(inputs, capsys, tmp_path, monkeypatch):
+    """Fit: XLA's own memory plan of an iteration; render: the file's arrays, then the movie's
+    pictures (measured ~4.9 bytes a pixel of peak memory; 8 assumed)."""
+    from jaxspring import resources
+
+    folder = tmp_path / "work"
+    shutil.copytree(inputs, folder)
+    line = _refused(
+        capsys,
+        folder,
+        "fit",
+        folder / "exp.toml",
+        "--out",
+        folder / "f.h5",
+        "--max-memory",
+        "10K",
+        "--quiet",
+        naming=("fit: an iteration of the direct stage", "--max-memory 10 KiB"),
+    )
+    assert "KiB of memory" in line or "MiB of memory" in line
+    _refused(
+        capsys, folder, "render", folder / "R.h5", "--out", folder / "r.gif", "--max-memory", "1K", naming=("reading",)
+    )
+    # 21 frames of 540x450 pixels at 8 bytes: 40.8 MB
+    line = _refused(
+        capsys,
+        folder,
+        "render",
+        folder / "R.h5",
+        "--out",
+        folder / "r.gif",
+        "--max-memory",
+        "30M",
+        naming=("--max-frames", "21 frames of 540x450"),
+    )
+    assert "~38.9 MiB" in line
+    monkeypatch.setattr(resources, "available_memory", lambda: 2**20)
+    _refused(capsys, folder, "render", folder / "R.h5", "--out", folder / "r.gif", naming=("this machine has",))
+
+
 def test_scene_files_that_are_not_regular_or_too_large_or_too_deep(capsys, tmp_path, monkeypatch):
     from jaxspring.io import schema
 
@@ -398,3 +438,41 @@ def test_a_lattice_spacing_that_underflows_is_refused(capsys, tmp_path):
     scene = tmp_path / "tiny.toml"
     scene.write_text(resolve_scene_path("chain").read_text().replace("spacing = 1.0", "spacing = 1e-320"))
     _refused(capsys, tmp_path, "run", scene, "--out", tmp_path / "t.h5", naming=("spacing", "coincide"))
+
+
+TWO = 'name = "two"\ndt = 0.001\n[physics]\nks = 100.0\nkd = 0.1\n[particles]\nx = [[0, 0, 0], [1, 0, 0]]\nmass = 1.0\n'
+
+
+@pytest.mark.parametrize(
+    "pinned, pairs, named",
+    [
+        ("[99999999999999999999]", "[[0, 1]]", "particles.pinned"),
+        ("[-9223372036854775809]", "[[0, 1]]", "particles.pinned"),
+        ("[9223372036854775807]", "[[0, 1]]", "particles.pinned"),
+        ("[0]", "[[0, 99999999999999999999]]", "springs.pairs"),
+        ("[0]", "[[0, 9223372036854775807]]", "springs"),
+    ],
+)
+def test_spring_and_pinned_indices_beyond_int64(capsys, tmp_path, pinned, pairs, named):
+    """Measured: OverflowError tracebacks (exit 1) for indices beyond int64."""
+    scene = tmp_path / "two.toml"
+    scene.write_text(TWO + f"pinned = {pinned}\n[springs]\npairs = {pairs}\n")
+    _refused(capsys, tmp_path, "run", scene, "--out", tmp_path / "out.h5", "--quiet", naming=(named,))
+
+
+@pytest.mark.parametrize(
+    "springs, message",
+    [
+        ([[0, 2**70]], "particle index 1180591620717411303424 out of range 0..1"),
+        ([[0, 2**63]], "particle index 9223372036854775808 out of range 0..1"),
+        (np.array([[0, 2**63]], dtype=np.uint64), "particle index 9223372036854775808 out of range"),
+        ([[0.5, 1]], "holds float 0.5, not a particle index"),
+        ([[True, 1]], "holds bool True"),
+        ([[0, 1, 1]], "has 3 indices, not rows of 2"),
+    ],
+)
+def test_api_spring_indices_are_checked_whatever_their_type(springs, message):
+    with pytest.raises(js.InputError, match=message):
+        js.make_model(springs=springs, mass=[1.0, 1.0], rest_length=[1.0])
+    with pytest.raises(js.InputError, match="pinned: particle index 18446744073709551616 out of range"):
+        js.make_model(springs=[[0, 1]], mass=[1.0, 1.0], rest_length=[1.0], pinned=[2**64])

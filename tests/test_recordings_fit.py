@@ -155,6 +155,17 @@ def test_fit_and_predict_recording_files(files, capsys):
     assert error < 3e-3
     assert f"{1e3 * error:.3f}" in printed  # the printed mean absolute error is this file's
     assert (files / "pred" / "held.png").stat().st_size > 1000
+    # outputs that would overwrite an input: the recording itself, or two recordings' outputs in one
+    before = {p.name: p.read_bytes() for p in files.iterdir() if p.is_file()}
+    for argv, words in [
+        ([str(files / "held.h5"), "--out-dir", str(files)], "is also an input"),
+        ([str(files / "held.h5"), str(files / "pred" / "held.h5"), "--out-dir", str(files / "new")], "share a file"),
+    ]:
+        assert main(["predict", str(out), *argv]) == 2
+        error = capsys.readouterr().err.strip()
+        assert words in error and "\n" not in error
+    assert {p.name: p.read_bytes() for p in files.iterdir() if p.is_file()} == before
+    assert not (files / "new").exists()
 
 
 @pytest.mark.parametrize(

@@ -148,7 +148,7 @@ def summary(scene, result, out) -> str:
     )
 
 
-def render_with_progress(scene, trajectory, out, frame, max_frames, quiet, label):
+def render_with_progress(scene, trajectory, out, frame, max_frames, quiet, label, max_memory=None):
     from tqdm.auto import tqdm
 
     from ..render import render
@@ -162,4 +162,4 @@ def render_with_progress(scene, trajectory, out, frame, max_frames, quiet, label
             bar.n = done + 1
             bar.refresh()
 
-        render(scene, trajectory, out, frame=frame, max_frames=max_frames, progress=progress)
+        render(scene, trajectory, out, frame=frame, max_frames=max_frames, progress=progress, max_memory=max_memory)

@@ -38,6 +38,11 @@ def add_parser(sub):
     parser.add_argument(
         "--dtype", choices=["float32", "float64"], default="float64", help="precision (default float64)"
     )
+    parser.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        help="refuse a fit whose iteration needs more memory, e.g. 4G (default: what is free)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -120,7 +125,9 @@ def command(args):
     from ..fit.loop import fit_batch
     from ..io.fit_file import load_fit_progress, save_fit
     from ..render import plot_fit
+    from ..resources import parse_size
 
+    limit = parse_size(args.max_memory) if args.max_memory else None
     if args.checkpoint_every < 1:
         raise InputError("--checkpoint-every", "must be >= 1", "give a positive number of iterations")
     default = Path(args.experiment).stem if args.experiment else Path(args.target or "fit").stem
@@ -186,7 +193,14 @@ def command(args):
     try:
         with bar:
             result = fit_batch(
-                scene, [observations], names, [init], settings, progress=progress, on_iteration=on_iteration
+                scene,
+                [observations],
+                names,
+                [init],
+                settings,
+                progress=progress,
+                on_iteration=on_iteration,
+                max_memory=limit,
             )[0]
         final = latest[0] or progress
         save_fit(out, config, names, initial, final, result, prediction)

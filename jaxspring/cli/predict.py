@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .common import check_output
+from .common import check_output, same_file
 
 
 def add_parser(sub):
@@ -51,9 +51,13 @@ def command(args):
     scene = scene_from_dict(tomllib.loads(info["scene_toml"]))
     recordings = [load_recording(p) for p in args.recordings]
     outputs = [out_dir / f"{stem}.h5" for stem in stems]
+    pictures = [] if args.no_plot else [path.with_suffix(".png") for path in outputs]
+    for path in outputs + pictures:  # refused before the folder is made
+        if any(same_file(path, Path(source)) for source in [args.fit, *args.recordings]):
+            raise InputError("--out-dir", f"{str(path)!r} is also an input of this command", "choose another folder")
     out_dir.mkdir(parents=True, exist_ok=True)
-    for path in outputs:
-        check_output(path, [args.fit, *args.recordings])
+    for path in outputs + pictures:
+        check_output(path, [args.fit, *args.recordings], flag="--out-dir")
     if args.bands and fitted["covariance"] is None:
         raise InputError(
             "--bands", f"{args.fit} has no parameter covariance", "fit again with the identifiability report"

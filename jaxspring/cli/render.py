@@ -13,14 +13,23 @@ def add_parser(sub):
     parser.add_argument("--out", help="output .png or .gif (default: FILE with .gif)")
     parser.add_argument("--frame", type=int, default=-1, help="frame a PNG shows (default: last)")
     parser.add_argument("--max-frames", type=int, default=60, help="frames in a GIF (default: 60)")
+    parser.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        help="refuse a file or movie that needs more memory, e.g. 4G (default: what is free)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def command(args):
     from ..io.trajectory import load_trajectory
+    from ..resources import parse_size
 
-    scene, trajectory = load_trajectory(args.file)
+    limit = parse_size(args.max_memory) if args.max_memory else None
     out = Path(args.out) if args.out else Path(args.file).with_suffix(".gif")
     check_output(out, inputs=[args.file])
-    render_with_progress(scene, trajectory, out, args.frame, args.max_frames, args.quiet, f"render {out.name}")
+    scene, trajectory = load_trajectory(args.file, max_memory=limit)
+    render_with_progress(
+        scene, trajectory, out, args.frame, args.max_frames, args.quiet, f"render {out.name}", max_memory=limit
+    )
     print(f"wrote {out}")

@@ -13,6 +13,7 @@ import numpy as np
 import optax
 
 from ..errors import InputError
+from ..resources import check_compiled
 from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
 from .ensemble import ensemble_step_function
@@ -92,12 +93,15 @@ def fit_batch(
     progress: FitProgress | None = None,
     on_iteration: Callable[[FitProgress, list[Stage]], None] | None = None,
     identify: bool = True,
+    max_memory: int | None = None,
     **kwargs,
 ) -> list[FitResult]:
     """Fit several starting guesses (multi-start) and/or several targets at once with `vmap`.
 
     `observations` holds one target (shared by all members) or one per member;
     `inits` one start per member (default: one member starting at the scene's values).
+    Each stage's iteration is compiled up front and refused (InputError) when XLA's memory
+    plan for it exceeds the memory available or `max_memory` bytes.
     `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
     after every iteration (the CLI checkpoints from it). With several devices and a
     member count divisible by their number, the members are split across them
@@ -167,6 +171,14 @@ def fit_batch(
         if progress.optimizer_leaves is not None:
             structure = jax.tree_util.tree_structure(opt_state)
             opt_state = jax.tree_util.tree_unflatten(structure, [jnp.asarray(a) for a in progress.optimizer_leaves])
+        step = check_compiled(
+            step,
+            (progress.theta, opt_state, data),
+            f"an iteration of the {stage.kind} stage ({members} start(s), {stage.frames} frames)",
+            "fit",
+            "fit fewer frames, recordings or starts, or fit in segments (strategy shooting)",
+            max_memory,
+        )
         final_stage = progress.stage == len(stages) - 1
         while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage, opt_state):
             values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}

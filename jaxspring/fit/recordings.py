@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..sim.checks import particle_indices
 from ..sim.driven import Drive, driven_simulate, steps_to_reach
 from ..sim.state import State
 
@@ -129,18 +130,20 @@ def recording_target(
     (count,) = counts
     model = scene.model
     n = model.particle_count
-    markers = np.arange(count) if markers is None else np.asarray(markers, dtype=np.int64).reshape(-1)
+    markers = (
+        np.arange(count)
+        if markers is None
+        else particle_indices("markers", markers, n, "give indices of the scene's particles")
+    )
     if markers.size != count:
         raise InputError(
             "markers",
             f"lists {markers.size} particles but the recordings have {count} markers",
             "give one particle per marker",
         )
-    _check_indices("markers", markers, n)
     if np.unique(markers).size != markers.size:
         raise InputError("markers", "puts two markers on one particle", "give each marker its own particle")
-    driven = np.asarray(driven, dtype=np.int64).reshape(-1)
-    _check_indices("driven", driven, n)
+    driven = particle_indices("driven", driven, n, "give indices of the scene's particles")
     carried = [int(np.nonzero(markers == p)[0][0]) if p in markers else -1 for p in driven]
     if -1 in carried:
         raise InputError(
@@ -220,12 +223,6 @@ def _smoothed(t, x, seen, half: int):
         coefficients = np.linalg.solve(normal, rhs)  # (M, 3 coefficients, 3 axes)
         positions[j], velocities[j] = coefficients[:, 0], coefficients[:, 1]
     return positions, velocities
-
-
-def _check_indices(field, indices, n):
-    if indices.size and (indices.min() < 0 or indices.max() >= n):
-        bad = int(indices[(indices < 0) | (indices >= n)][0])
-        raise InputError(field, f"particle {bad} is out of range 0..{n - 1}", "give indices of the scene's particles")
 
 
 def _fill_gaps(name, rec, driven_markers, start) -> np.ndarray:

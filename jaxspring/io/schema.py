@@ -197,6 +197,8 @@ def vectors(value):
 def index(value):
     if isinstance(value, bool) or not isinstance(value, int):
         raise Bad("must hold integer indices", "write whole numbers")
+    if not -(2**63) <= value < 2**63:
+        raise Bad(f"index {value} is beyond any particle count", "give indices of the scene's particles")
     return value
 
 

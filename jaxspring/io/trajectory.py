@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FileFormatError, InputError
+from ..resources import check_hdf5_read
 from ..sim.checks import check_params
 from ..sim.model import make_model
 from ..sim.params import Params
@@ -177,12 +178,13 @@ def _check_trajectory_arrays(path, t, x, v, springs, rest_length, mass, faces, l
         raise bad(f"lattice_shape {lattice} does not hold the {count} particles")
 
 
-def load_trajectory(path) -> tuple[Scene, Trajectory]:
+def load_trajectory(path, max_memory: int | None = None) -> tuple[Scene, Trajectory]:
     """Read a trajectory file; returns (scene, trajectory).
 
     The scene is rebuilt from the file (topology, params, integrator, dt) with
     frame 0 as its state; a params entry absent from the file means that force
-    is not in the scene.
+    is not in the scene. A file whose arrays exceed the memory available (or
+    `max_memory` bytes) is refused before it is read.
 
     Example:
         >>> scene, traj = js.load_trajectory("cloth.h5")
@@ -203,6 +205,7 @@ def load_trajectory(path) -> tuple[Scene, Trajectory]:
             raise FileFormatError(
                 f"{path}: format_version {version} is not supported; this jaxspring reads version {FORMAT_VERSION}"
             )
+        check_hdf5_read(f, path, max_memory)
         try:
             params = {name: np.asarray(f["params"][name][()]) for name in f["params"]}
             topo = f["topology"]

@@ -113,6 +113,35 @@ def check_finite(name, value):
         raise InputError(name, "contains NaN or infinity", "give finite numbers")
 
 
+def particle_indices(name, value, count, fix, shape=(-1,)) -> np.ndarray:
+    """`value` as int64 particle indices in 0..count-1 (reshaped to `shape`), or a one-line
+    InputError naming the problem: non-integers, or the first index out of range, however
+    large (Python integers beyond int64 too)."""
+    arr = value if isinstance(value, np.ndarray) else np.asarray(value, dtype=object)
+    if arr.dtype.kind == "O":
+        flat = arr.reshape(-1)
+        odd = next((i for i in flat if isinstance(i, bool) or not isinstance(i, (int, np.integer))), None)
+        if odd is not None:
+            raise InputError(name, f"holds {type(odd).__name__} {odd!r}, not a particle index", fix)
+        if any(not -(2**63) <= int(i) < 2**63 for i in flat):
+            bad = next(int(i) for i in flat if not -(2**63) <= int(i) < 2**63)
+            raise InputError(name, f"particle index {bad} out of range 0..{count - 1}", fix)
+        arr = flat.astype(np.int64) if flat.size else np.zeros(0, dtype=np.int64)
+    elif arr.dtype.kind == "u":
+        if arr.size and arr.max() > 2**62:
+            raise InputError(name, f"particle index {int(arr.max())} out of range 0..{count - 1}", fix)
+    elif arr.dtype.kind != "i" and arr.size:
+        raise InputError(name, f"holds {arr.dtype} values, not particle indices", fix)
+    arr = arr.astype(np.int64).reshape(-1)
+    outside = (arr < 0) | (arr >= count)
+    if outside.any():
+        raise InputError(name, f"particle index {int(arr[outside][0])} out of range 0..{count - 1}", fix)
+    try:
+        return arr.reshape(shape)
+    except ValueError:
+        raise InputError(name, f"has {arr.size} indices, not rows of {shape[-1]}", fix) from None
+
+
 def flag_mask(name, value, count, default):
     if value is None:
         return np.full(count, default)
@@ -123,9 +152,7 @@ def flag_mask(name, value, count, default):
         if arr.shape != (count,):
             raise InputError(name, f"mask has shape {arr.shape}, expected ({count},)", "give one flag per particle")
         return arr.copy()
-    idx = arr.astype(np.int64).reshape(-1)
-    if idx.size and (idx.min() < 0 or idx.max() >= count):
-        raise InputError(name, f"particle index out of range 0..{count - 1}", "fix the index list")
+    idx = particle_indices(name, arr, count, "fix the index list")
     mask = np.zeros(count, dtype=bool)
     mask[idx] = True
     return mask

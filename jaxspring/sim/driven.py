@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..steppers.base import Generic
+from .checks import particle_indices
 from .state import State, Trajectory
 
 
@@ -81,16 +82,11 @@ def make_drive(particles, t, x, particle_count: int, pinned=None) -> Drive:
     Example:
         >>> drive = make_drive([0, 19], t, x, scene.model.particle_count, scene.model.pinned)
     """
-    indices = np.asarray(particles, dtype=np.int64).reshape(-1)
+    indices = particle_indices("driven", particles, particle_count, "give indices of the scene's particles")
     t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
     if indices.size == 0:
         raise InputError("driven", "names no particle", "list the driven particles, e.g. driven = [0]")
-    if indices.min() < 0 or indices.max() >= particle_count:
-        bad = int(indices[(indices < 0) | (indices >= particle_count)][0])
-        raise InputError(
-            "driven", f"particle {bad} is out of range 0..{particle_count - 1}", "give indices of the scene's particles"
-        )
     if np.unique(indices).size != indices.size:
         raise InputError("driven", "names a particle twice", "list each driven particle once")
     if pinned is not None and np.asarray(pinned)[indices].any():

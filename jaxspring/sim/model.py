@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..steppers import Stepper, check_backend, select_stepper
-from .checks import check_finite, check_groups, flag_mask
+from .checks import check_finite, check_groups, flag_mask, particle_indices
 from .forces import TERM_PARAMETERS, TERMS
 from .integrators import Integrator, SemiImplicitEuler, as_integrator
 from .params import PER_GROUP, Params, split_name
@@ -209,7 +209,6 @@ def make_model(
         >>> model = make_model([[0, 1]], mass=[1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]],
         ...                    pinned=[0], dt=1e-3)
     """
-    springs_np = np.asarray(springs, dtype=np.int64).reshape(-1, 2)
     if positions is not None:
         positions = np.asarray(positions, dtype=float)
     mass_np = np.asarray(mass, dtype=float)
@@ -221,9 +220,7 @@ def make_model(
     check_finite("mass", mass_np)
     if np.any(mass_np <= 0):
         raise InputError("mass", f"must be > 0, got {mass_np.min():g}", "give every particle a positive mass")
-    if springs_np.size and (springs_np.min() < 0 or springs_np.max() >= count):
-        bad = springs_np[(springs_np < 0) | (springs_np >= count)][0]
-        raise InputError("springs", f"particle index {bad} out of range 0..{count - 1}", "fix the spring's endpoints")
+    springs_np = particle_indices("springs", springs, count, "fix the spring's endpoints", shape=(-1, 2))
     if np.any(springs_np[:, 0] == springs_np[:, 1]):
         i = int(np.nonzero(springs_np[:, 0] == springs_np[:, 1])[0][0])
         raise InputError("springs", f"spring {i} joins particle {springs_np[i, 0]} to itself", "remove it")
