@@ -83,6 +83,14 @@ def render(
         raise InputError("frame", f"{frame} is outside 0..{frames - 1}", "choose an existing frame")
 
     chosen = np.unique(np.linspace(0, frames - 1, min(max_frames, frames)).round().astype(int))
+    drawn = chosen if suffix == ".gif" else np.array([frame % frames])
+    broken = [int(k) for k in drawn if not np.isfinite(x[k]).all()]
+    if broken:
+        raise InputError(
+            "file",
+            f"frame {broken[0]} holds NaN or infinite positions ({len(broken)} of the {len(drawn)} frames drawn)",
+            "draw earlier frames (--frame), or re-run the simulation at a stable dt",
+        )
     width, height = 6 * 90, 5 * 90
     if suffix == ".gif":
         check_movie(len(chosen), width, height, max_memory)

@@ -22,7 +22,7 @@ WORKER = textwrap.dedent(
                                process_id=int(sys.argv[1]), initialization_timeout=120)
     sys.path.insert(0, TESTS)
     import jaxspring as js
-    from jaxspring.fit.recordings import target_data
+    from jaxspring.fit.recording_loss import target_data
     from test_recordings_fit import ROPE, make_recordings
     assert jax.process_count() == 2 and jax.device_count() == 2 and jax.local_device_count() == 1
     rope = js.scene_from_dict(ROPE)

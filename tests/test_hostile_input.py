@@ -293,6 +293,63 @@ def test_check_never_says_ok_about_a_scene_that_blows_up(capsys, tmp_path):
     text = resolve_scene_path("chain").read_text()
     scene.write_text(text.replace("mass = 1.0", "mass = 1e-320"))
     _refused(capsys, tmp_path, "check", scene, naming=("overflows",))
+    # measured: `run` printed a warning "(stable at this dt: )" and an error "omega_max nan"
+    _refused(capsys, tmp_path, "run", scene, "--steps", "20", "--save-every", "10", "--out", tmp_path / "q.h5")
+
+
+@pytest.mark.parametrize(
+    "scene, change",
+    [
+        ("heavy", ()),
+        ("chain", ("--set", "ks=1e308")),
+        ("chain", ("--set", "kd=1e308")),
+        ("chain", ("--set", "cd=1e308")),
+        ("cloth", ("--set", "ks=1e308")),
+    ],
+)
+def test_check_runs_a_trial_before_it_says_ok(capsys, tmp_path, scene, change):
+    """Measured: "ok (margin 3.17e+155x)" for masses of 1e308 (energies overflow) and "omega_max 0
+    ... ok" for stiffness near the largest float, while `run` blew up at step 1 or 2. The linear
+    estimate cannot see these; `check` now runs 10 steps as `run` does before it says ok."""
+    if scene == "heavy":
+        scene = tmp_path / "heavy.toml"
+        scene.write_text(resolve_scene_path("chain").read_text().replace("mass = 1.0", "mass = 1e308"))
+    _refused(capsys, tmp_path, "check", scene, *change, naming=("blew up at step", "a trial run of 10 steps"))
+    capsys.readouterr()
+    assert main(["check", "chain"]) == 0 and "ok:" in capsys.readouterr().out
+
+
+def test_frames_with_nan_positions_are_not_drawn(float32_recording, tmp_path, capsys):
+    """Measured: a file with NaN positions rendered blank axes with exit 0."""
+    bad = tmp_path / "bad.h5"
+    shutil.copy(float32_recording / "rec.h5", bad)
+    with h5py.File(bad, "r+") as f:
+        f["trajectory/x"][5:, 3] = np.nan
+    for out, extra in [("x.png", ()), ("x.gif", ()), ("y.png", ("--frame", "-1"))]:
+        _refused(capsys, tmp_path, "render", bad, "--out", tmp_path / out, *extra, naming=("NaN or infinite",))
+    assert main(["render", str(bad), "--out", str(tmp_path / "early.png"), "--frame", "4"]) == 0
+    assert (tmp_path / "early.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"ks": -5000.0}, "ks: must be >= 0"),
+        ({"ks": float("nan")}, "ks: contains NaN"),
+        ({"kg": 5.0}, "kg: the scene has no ground term"),
+        ({"ks": np.full((19, 1), 1e3)}, r"ks: has shape \(19, 1\)"),
+        ({"ks": "abc"}, "ks: must be a number"),
+    ],
+)
+def test_rollout_checks_params_made_with_replace(scenes, change, message):
+    """Measured: `params.replace(...)` (the README's pattern) reached the rollout unchecked: NaN
+    trajectories, an ignored kg, a raw broadcasting error. Known values are checked; traced
+    ones (jit, vmap, grad) are not, and gradients still flow."""
+    scene = scenes["chain"]
+    with pytest.raises(js.InputError, match=message):
+        js.rollout(scene.model, scene.params.replace(**change), scene.state, steps=10)
+    with pytest.raises(js.InputError, match=message):
+        js.final_state(scene.model, scene.params.replace(**change), scene.state, steps=10)
 
 
 def test_a_state_of_the_wrong_shape_is_named(scenes):

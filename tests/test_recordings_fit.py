@@ -9,7 +9,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring.cli import main
-from jaxspring.fit.recordings import loss_function, target_data
+from jaxspring.fit.recording_loss import loss_function, target_data
 from jaxspring.fit.settings import FitSettings, Stage, plan_stages
 
 N = 6
@@ -92,20 +92,56 @@ def test_recording_loss_gradient_matches_finite_differences(rope):
 
 
 def test_same_model_recordings_give_back_stiffness_and_drag(rope):
-    """Positions only, 1 mm noise on every frame, velocities unknown, ends driven."""
+    """Positions only, 1 mm noise on every frame (driven markers too), velocities unknown,
+    start states fitted: stiffness and drag within 2%; damping ~7% high (measured +7.1%, at
+    the least-squares optimum: the truth's cost is higher by 36 sigma^2), a bias of noisy
+    driven paths that no start state removes."""
     recs = make_recordings(rope, 3, 150, noise=1e-3)
-    target = js.recording_target(rope, recs, driven=[0, N - 1], start=1, smooth=5)
+    target = js.recording_target(rope, recs, driven=[0, N - 1], start=1, smooth=5, fit_start=True)
     init = {"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}
     result = js.fit(rope, target, list(TRUTH), init=init, iterations=60)
-    assert abs(float(result.final["ks.stretch"]) / 400.0 - 1) < 0.02
-    assert abs(float(result.final["cd"]) / 0.05 - 1) < 0.05
-    # kd comes out ~30% high: noise in the start states and driven paths excites motion it damps away
-    assert abs(float(result.final["kd.stretch"]) / 1.0 - 1) < 0.5
+    error = {n: float(result.final[n]) / TRUTH[n] - 1 for n in TRUTH}
+    assert abs(error["ks.stretch"]) < 0.02 and abs(error["cd"]) < 0.02, error
+    assert abs(error["kd.stretch"]) < 0.12, error
+    se = result.identifiability.relative_standard_error
+    assert abs(error["ks.stretch"]) < 3 * float(se["ks.stretch"]) and abs(error["cd"]) < 3 * float(se["cd"])
+    assert result.stages[-1].kind == "gauss_newton"  # the start states' Levenberg-Marquardt polish ran
     held = make_recordings(rope, 1, 150, noise=1e-3, seed=7)
     fitted = js.predict(rope, result.final, held, driven=[0, N - 1], smooth=5)[0]
     frozen = np.linalg.norm(held[0].x[2:] - held[0].x[1], axis=-1)
-    assert fitted.mean_absolute_error < 0.3 * np.nanmean(frozen[:, 1:-1])
-    assert fitted.mean_absolute_error < 3e-3
+    assert fitted.mean_absolute_error < 0.3 * np.nanmean(frozen[:, 1:-1])  # measured 3.3 mm against 46 mm
+    assert fitted.mean_absolute_error < 4e-3  # the held-out take starts from its noisy start frame
+
+
+def test_fitting_the_start_state_removes_the_start_frames_noise_from_the_damping(rope):
+    """Noise on the free markers only (ends driven exactly, as a robot reports them): the start
+    rule's noisy start state sets off motion that kd is fitted to damp (measured +14%); with
+    the start states fitted, every value comes back within 4% (measured kd -3.8%, ks +0.1%)."""
+    recs = [
+        js.Recording(t=r.t, x=np.where(np.isin(np.arange(N), [0, N - 1])[None, :, None], clean.x, r.x))
+        for r, clean in zip(make_recordings(rope, 3, 150, noise=1e-3), make_recordings(rope, 3, 150, noise=0.0))
+    ]
+    target = js.recording_target(rope, recs, driven=[0, N - 1], start=1, smooth=5, fit_start=True)
+    result = js.fit(rope, target, list(TRUTH), init={"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}, iterations=60)
+    error = {n: float(result.final[n]) / TRUTH[n] - 1 for n in TRUTH}
+    assert all(abs(e) < 0.04 for e in error.values()), error
+    assert abs(error["kd.stretch"]) < 3 * float(result.identifiability.relative_standard_error["kd.stretch"]), error
+
+
+def test_the_start_loss_gradient_matches_finite_differences(rope):
+    recs = make_recordings(rope, 2, 30, noise=1e-3)
+    target = js.recording_target(rope, recs, driven=[0, N - 1], smooth=3, fit_start=True)
+    loss = jax.jit(loss_function(rope, target, ["ks.stretch"], Stage("direct", 29)))
+    data = target_data(target)
+    start = jnp.asarray(np.random.default_rng(3).normal(size=(2, N, 6)))
+    theta = {"ks.stretch": jnp.log(350.0), "start": start}
+    grad = jax.grad(loss)(theta, data)["start"]
+    assert np.all(np.asarray(grad)[:, [0, N - 1]] == 0.0)  # driven particles' start is the path's
+    for index in [(0, 2, 0), (1, 3, 4), (0, 1, 5)]:
+        h = 1e-4
+        up = loss({**theta, "start": start.at[index].add(h)}, data)
+        down = loss({**theta, "start": start.at[index].add(-h)}, data)
+        np.testing.assert_allclose(grad[index], (up - down) / (2 * h), rtol=1e-5)
 
 
 @pytest.fixture(scope="module")
@@ -240,3 +276,16 @@ def _noise_free():
     physics = dict(ROPE["physics"], kd={"stretch": 1.0, "bend": 0.05})
     scene = js.scene_from_dict(dict(ROPE, physics=physics))
     return scene, js.recording_target(scene, make_recordings(scene, 2, 45, noise=0.0), driven=[0, N - 1], smooth=5)
+
+
+def test_a_fitted_start_state_is_kept_for_resume(tmp_path):
+    from jaxspring.fit.results import FitProgress
+    from jaxspring.io.fit_file import load_fit_progress, save_fit
+
+    start = np.random.default_rng(0).normal(size=(1, 2, N, 6))
+    theta = {"ks.stretch": jnp.full((1,), 5.9), "start": jnp.asarray(start)}
+    progress = FitProgress(0, 3, theta, None, [np.ones(1)] * 3, {"ks.stretch": [np.ones(1)] * 3}, [0, 0, 0])
+    save_fit(tmp_path / "f.h5", {"a": 1}, ["ks.stretch"], {"ks.stretch": 300.0}, progress)
+    loaded = load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks.stretch"])
+    np.testing.assert_array_equal(loaded.theta["start"], start)
+    np.testing.assert_array_equal(loaded.theta["ks.stretch"], [5.9])

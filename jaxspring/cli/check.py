@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from .common import INTEGRATOR_HELP, instability_advice, prepare_scene
+from .common import INTEGRATOR_HELP, TRIAL_STEPS, instability_advice, prepare_scene, refuse_overflowing
 
 
 def add_parser(sub):
@@ -21,22 +21,14 @@ def add_parser(sub):
 
 
 def command(args):
-    import math
-
-    from ..errors import InputError
+    from ..errors import BlowUpError
+    from ..sim.run import run_scene
     from ..sim.stability import estimate_stability
 
     scene, _, _ = prepare_scene(args)
     stability = estimate_stability(scene.model, scene.params, scene.state)
     m = scene.model
-    numbers = (stability.omega_max, stability.damping_max)  # the margin is infinite for backward Euler
-    if not all(math.isfinite(n) for n in numbers) or stability.omega_max * m.dt > 1e150:
-        raise InputError(
-            "scene",
-            f"its stability estimate overflows (omega_max {stability.omega_max:.3g} rad/s, "
-            f"damping rate {stability.damping_max:.3g} 1/s): no time step can run it",
-            "give physical stiffness, damping and masses",
-        )
+    refuse_overflowing(scene, stability)
     print(
         f"{scene.name}: {m.particle_count} particles, {m.spring_count} springs, terms {', '.join(m.terms)}; "
         f"dt {m.dt:g} s, integrator {m.integrator}"
@@ -49,5 +41,8 @@ def command(args):
     if stability.margin < 1:
         print(f"jaxspring: warning: {instability_advice(scene, stability)}", file=sys.stderr)
         return 1
+    trial = run_scene(scene, TRIAL_STEPS, 1, show_progress=False, stability=stability)
+    if trial.blowup is not None:
+        raise BlowUpError(f"{scene.name}: {trial.blowup.describe()} (a trial run of {TRIAL_STEPS} steps)")
     print(f"ok: {m.integrator} at dt {m.dt:g} s is within its stable dt (margin {stability.margin:.3g}x)")
     return 0

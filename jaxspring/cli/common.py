@@ -123,6 +123,7 @@ def simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
     from ..sim.stability import estimate_stability
 
     stability = estimate_stability(scene.model, scene.params, scene.state)
+    refuse_overflowing(scene, stability)
     if stability.margin < 1:
         print(f"jaxspring: warning: {instability_advice(scene, stability)}", file=sys.stderr, flush=True)
     result = run_scene(scene, steps, save_every, show_progress=not quiet, stability=stability)
@@ -130,6 +131,26 @@ def simulate_and_save(scene, steps, save_every, out: Path, quiet: bool):
         raise BlowUpError(f"{scene.name}: {result.blowup.describe()}; no file was written")
     save_trajectory(out, scene, result.trajectory)
     return result
+
+
+def refuse_overflowing(scene, stability) -> None:
+    """A one-line error for a scene whose stability estimate is not a finite number: its
+    stiffness, damping or masses are beyond what any time step can run."""
+    from ..errors import InputError
+
+    numbers = (stability.omega_max, stability.damping_max)  # the margin is infinite for backward Euler
+    if not all(math.isfinite(n) for n in numbers) or stability.omega_max * scene.model.dt > 1e150:
+        raise InputError(
+            "scene",
+            f"its stability estimate overflows (omega_max {stability.omega_max:.3g} rad/s, "
+            f"damping rate {stability.damping_max:.3g} 1/s): no time step can run it",
+            "give physical stiffness, damping and masses",
+        )
+
+
+TRIAL_STEPS = 10
+"""`check` runs this many steps as `run` would: a scene whose energy overflows or whose
+estimate misjudges it (stiffness near the largest float) blows up there."""
 
 
 def instability_advice(scene, stability) -> str:

@@ -109,6 +109,7 @@ def _fit_problem(args):
             driven=list(experiment.driven),
             start=experiment.start,
             smooth=experiment.smooth,
+            fit_start=experiment.fit_start,
             loss=experiment.loss,
             huber_scale=experiment.huber_scale,
         )

@@ -36,8 +36,8 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
 
     misfit = misfit_function(scene, observations, names, stage.frames)
 
-    def residuals(vector, data):
-        return misfit(unravel(vector), data).reshape(-1)
+    def residuals(vector, data, extras):  # extras: theta's other entries (a fitted start), held
+        return misfit({**extras, **unravel(vector)}, data).reshape(-1)
 
     def init(theta_member):
         eye = jnp.eye(size, dtype=dtype)
@@ -62,7 +62,8 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         step = jnp.where(fresh | ~jnp.all(jnp.isfinite(step)), 0.0, step)
         candidate = centre + step
         cloud = candidate + cloud_points @ state["spread"].T
-        r = jax.vmap(residuals, in_axes=(0, None))(jnp.concatenate([candidate[None], cloud]), data)
+        extras = {k: v for k, v in theta_member.items() if k not in names}
+        r = jax.vmap(residuals, in_axes=(0, None, None))(jnp.concatenate([candidate[None], cloud]), data, extras)
         r_centre, r = r[0], r[1:]
         count = r_centre.shape[0]
         finite = jnp.all(jnp.isfinite(r), axis=1)
@@ -119,7 +120,8 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         new = {k: jnp.asarray(v, dtype) for k, v in new.items()}
         value = jnp.where(fresh, new["loss"], state["loss"])
         moved = unravel(candidate)
-        theta_new = {n: jnp.where(accept & (state["done"] == 0), moved[n], theta_member[n]) for n in names}
+        theta_new = {**theta_member}
+        theta_new.update({n: jnp.where(accept & (state["done"] == 0), moved[n], theta_member[n]) for n in names})
         return theta_new, new, value
 
     step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if batched else None)))

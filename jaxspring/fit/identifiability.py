@@ -109,7 +109,36 @@ def gauss_newton_polish(scene, observations, names, values, settings, max_parame
     return steps
 
 
-def identifiability(scene: Scene, observations: Observations, names, values: dict, max_parameters: int = 64):
+def start_polish(scene, target, names, values, start, settings):
+    """Levenberg-Marquardt on the parameters and every recording's start state together
+    (`block_lm`: the recordings' start states are eliminated each step), from the
+    first-order optimiser's answer; steps only downhill. Returns polish steps with
+    `.final`, `.final_loss`, `.start` (R, N, 6) and `.reduced` (the parameters' normal
+    matrix with the start states estimated, for their standard errors)."""
+    from .block_lm import block_levenberg_marquardt
+    from .recording_loss import block_problem
+
+    p0, unravel, s0, residual, data, to_start = block_problem(scene, target, names, values, start)
+    solution = block_levenberg_marquardt(
+        residual, p0, s0, data, iterations=max(settings.polish_iterations, 30), tolerance=settings.step_tolerance
+    )
+    count = max(target.residual_count, 1)
+    to_values = lambda v: {n: np.asarray(jnp.exp(x)) for n, x in unravel(jnp.asarray(v)).items()}  # noqa: E731
+    steps = _PolishSteps((cost / count, to_values(p)) for cost, p in solution.history)
+    steps.final, steps.final_loss = to_values(solution.p), solution.cost / count
+    steps.start, steps.reduced = to_start(solution.s), solution.reduced
+    return steps
+
+
+def identifiability(
+    scene: Scene,
+    observations: Observations,
+    names,
+    values: dict,
+    max_parameters: int = 64,
+    normal=None,
+    nuisance: int = 0,
+):
     """Gauss-Newton standard errors and correlations of `values` for the full-horizon fit.
 
     With residuals r (observed minus simulated positions) and J = dr/d(log p), the
@@ -118,6 +147,9 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
     not depend on a parameter, when it is poorly determined (relative standard error
     above 50%), when two parameters are confounded (|correlation| > 0.95), and when the
     loss one standard error away disagrees with the quadratic model (a rough loss).
+    `normal` replaces J^T J, e.g. by the parameters' block of a fit that also estimated
+    `nuisance` other values (start states, eliminated: `start_polish`), so the standard
+    errors include what those unknowns leave undetermined.
 
     Example:
         >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
@@ -130,7 +162,8 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
     r = np.asarray(residuals(flat))
     jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
     count, dims = getattr(observations, "residual_count", r.shape[0]), flat.shape[0]  # unseen markers carry no data
-    sigma2 = float(r @ r) / max(count - dims, 1)
+    sigma2 = float(r @ r) / max(count - dims - nuisance, 1)
+    normal = jac.T @ jac if normal is None else np.asarray(normal)
     labels = _labels(theta)
     warnings = []
     column = np.linalg.norm(jac, axis=0)
@@ -140,9 +173,8 @@ def identifiability(scene: Scene, observations: Observations, names, values: dic
     # invert on unit-norm columns (so a parameter with a tiny effect is not cut off by a
     # round-off threshold), then undo the scaling; directions the data cannot see get
     # infinite variance rather than zero
-    scale = np.where(dead, 1.0, column)
-    scaled = jac / scale
-    eigenvalues, eigenvectors = np.linalg.eigh(scaled.T @ scaled)
+    scale = np.where(dead, 1.0, np.sqrt(np.maximum(np.diag(normal), 1e-300)))
+    eigenvalues, eigenvectors = np.linalg.eigh(normal / np.outer(scale, scale))
     visible = eigenvalues > 1e-13 * max(float(eigenvalues.max()), 1e-300)
     inverse = (eigenvectors[:, visible] / eigenvalues[visible]) @ eigenvectors[:, visible].T
     covariance = sigma2 * inverse / np.outer(scale, scale)

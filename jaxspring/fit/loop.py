@@ -17,9 +17,10 @@ from ..resources import check_compiled
 from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
 from .ensemble import ensemble_step_function
-from .identifiability import gauss_newton_polish, identifiability
+from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
+from .recording_loss import start_unknowns, with_fitted_start
 from .recordings import RecordingTarget
 from .results import FitProgress, FitResult
 from .settings import FitSettings, Stage, plan_stages
@@ -150,6 +151,8 @@ def fit_batch(
     stages = plan_stages(reference, settings, scene, values=sum(math.prod(shapes[n]) for n in names))
     if progress is None:
         theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], shapes[n])) for s in start_values]) for n in names}
+        for key, value in start_unknowns(reference).items():  # a fitted start state (recordings)
+            theta[key] = jnp.broadcast_to(value, (members,) + value.shape)
         progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
     if jax.device_count() > 1 and members % jax.device_count() == 0:  # members across devices
         progress.theta = shard_batch(progress.theta)
@@ -244,7 +247,12 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         value_history = {n: [v[member] for v in progress.values[n]] for n in names}
         stage_of_iteration = list(progress.stage_of_iteration)
         polish_start = time.perf_counter()
-        steps = gauss_newton_polish(scene, obs, names, final, settings) if settings.polish else []
+        if "start" in progress.theta:  # fitted start states: always polished with them (least squares)
+            start_member = np.asarray(progress.theta["start"][member])
+            steps = start_polish(scene, obs, names, final, start_member, settings) if obs.loss == "mse" else []
+            obs = with_fitted_start(obs, steps.start if steps else start_member)  # reported with them held
+        else:
+            steps = gauss_newton_polish(scene, obs, names, final, settings) if settings.polish else []
         for loss_before, values_before in steps:
             history.append(loss_before)
             for n in names:
@@ -255,7 +263,9 @@ def _results(scene, observations, names, start_values, settings, stages, progres
             final_loss_member = steps.final_loss
         else:
             final_loss_member = final_loss[member]
-        ident = identifiability(scene, obs, names, final) if identify else None
+        reduced = getattr(steps, "reduced", None)  # start states estimated too: their uncertainty counts
+        nuisance = int(np.count_nonzero(obs.free)) * 6 * len(obs.names) if reduced is not None else 0
+        ident = identifiability(scene, obs, names, final, normal=reduced, nuisance=nuisance) if identify else None
         results.append(
             FitResult(
                 names=names,

@@ -12,7 +12,7 @@ from ..sim.params import split_name
 from ..sim.rollout import rollout
 from ..sim.scene import Scene
 from ..sim.state import State
-from . import recordings
+from . import recording_loss
 from .observations import Observations
 from .recordings import RecordingTarget
 from .settings import FITTABLE, Stage
@@ -51,7 +51,7 @@ def misfit_function(scene: Scene, observations: Observations, names, frames: int
     theta maps name -> log value; data holds the target and its initial state.
     """
     if isinstance(observations, RecordingTarget):
-        return recordings.misfit_function(scene, observations, names, frames)
+        return recording_loss.misfit_function(scene, observations, names, frames)
     model, base = scene.model, scene.params
     particles = jnp.asarray(observations.particles)
     every = observations.save_every
@@ -68,7 +68,7 @@ def misfit_function(scene: Scene, observations: Observations, names, frames: int
 def loss_function(scene: Scene, observations: Observations, names, stage: Stage):
     """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
     if isinstance(observations, RecordingTarget):
-        return recordings.loss_function(scene, observations, names, stage)
+        return recording_loss.loss_function(scene, observations, names, stage)
     model, base = scene.model, scene.params
     particles = jnp.asarray(observations.particles)
     every = observations.save_every
@@ -96,7 +96,7 @@ def loss_function(scene: Scene, observations: Observations, names, stage: Stage)
 
 def target_data(observations: Observations) -> dict:
     if isinstance(observations, RecordingTarget):
-        return recordings.target_data(observations)
+        return recording_loss.target_data(observations)
     data = {"x": jnp.asarray(observations.x), "x0": observations.initial_state.x, "v0": observations.initial_state.v}
     if observations.states is not None:
         data["states_x"] = jnp.asarray(observations.states.x)
@@ -107,7 +107,7 @@ def target_data(observations: Observations) -> dict:
 def residual_function(scene: Scene, observations: Observations, names, values: dict):
     """(flat log parameters, unravel, residuals(flat) -> (n,)) for the full horizon."""
     if isinstance(observations, RecordingTarget):
-        return recordings.residual_function(scene, observations, names, values)
+        return recording_loss.residual_function(scene, observations, names, values)
     theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
     flat, unravel = ravel_pytree(theta)
     base, model = scene.params, scene.model.forward_mode()  # Jacobians are taken with jacfwd

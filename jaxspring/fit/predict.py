@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .identifiability import unique_names
-from .recordings import RecordingTarget, carriers, markers_simulated, recording_target, target_data
+from .recording_loss import carriers, markers_simulated, target_data
+from .recordings import RecordingTarget, recording_target
 
 
 @dataclasses.dataclass(frozen=True)

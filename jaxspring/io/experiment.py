@@ -34,7 +34,8 @@ class Experiment:
         seed: random seed of the noise.
         particles: observed particles (None: every free particle).
         recordings: recording files to fit (the fitted values are shared by all of them).
-        markers, driven, start, smooth: how recordings map onto the scene (see `recording_target`).
+        markers, driven, start, smooth, fit_start: how recordings map onto the scene and whether
+            their start states are fitted too (see `recording_target`).
         loss, huber_scale: the recordings' misfit ("mse", "l1" or "huber").
         evaluate: held-out recording files whose error `jaxspring fit` reports after fitting.
 
@@ -62,6 +63,7 @@ class Experiment:
     driven: tuple = ()
     start: int = 1
     smooth: int = 0
+    fit_start: bool = False
     loss: str = "mse"
     huber_scale: float = 0.002
     evaluate: tuple = ()
@@ -94,6 +96,7 @@ class Experiment:
                 self.loss,
                 self.huber_scale,
                 names=tuple(Path(p).stem for p in paths),
+                fit_start=self.fit_start,
             )
         except InputError as exc:
             raise exc.within("", "target") from None
@@ -166,6 +169,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     driven = target.take("driven", schema.index_list, default=[])
     start = target.take("start", schema.count, default=1)
     smooth = target.take("smooth", schema.count, default=0)
+    fit_start = target.take("fit_start", schema.boolean, default=False)
     true_table = target.table("true")
     true_values = None
     if true_table is not None:
@@ -248,6 +252,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         driven=tuple(driven),
         start=start,
         smooth=smooth,
+        fit_start=fit_start,
         loss=loss,
         huber_scale=huber_scale,
         evaluate=evaluate,

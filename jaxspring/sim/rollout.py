@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from ..errors import InputError
+from .checks import check_params
 from .driven import Drive, driven_rollout
 from .model import Model
 from .params import Params
@@ -57,6 +58,7 @@ def rollout(
     """
     frames = frame_count(steps, save_every)
     state = _in_model_precision(model, state)
+    _check_known_params(model, params)
     if frames == 0:  # frame 0 only
         return Trajectory(x=state.x[None], v=state.v[None], t=jnp.full(1, t0, state.x.dtype))
     if drive is not None:
@@ -82,10 +84,19 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
     """
     steps = step_count(steps, "steps", minimum=0)
     state = _in_model_precision(model, state)
+    _check_known_params(model, params)
     if steps == 0:
         return state
     end, _, _ = simulate(model, params, state, 1, steps)
     return end
+
+
+def _check_known_params(model: Model, params: Params) -> None:
+    """`check_params` on params whose values are known here (not traced under jit, vmap or
+    grad): a negative, NaN or misshapen value, or one for a term the scene lacks, is a
+    one-line InputError, not a NaN trajectory or a broadcasting error."""
+    if not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(params)):
+        check_params(model, params)
 
 
 def _in_model_precision(model: Model, state: State) -> State:

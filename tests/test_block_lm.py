@@ -1,0 +1,60 @@
+"""Block-arrow Levenberg-Marquardt against a dense least-squares solve written in the test."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxspring.fit.block_lm import block_levenberg_marquardt
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _linear_problem(blocks=4, shared=3, local=5, rows=30, seed=0):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(blocks, rows, shared))
+    c = rng.normal(size=(blocks, rows, local))
+    y = rng.normal(size=(blocks, rows))
+    return a, c, y
+
+
+def test_linear_blocks_reach_the_dense_least_squares_answer_and_its_covariance():
+    """r_b = A_b p + C_b s_b - y_b: the answer and the p-block of (J^T J)^-1 of the stacked
+    (block-arrow) system, solved densely with NumPy."""
+    a, c, y = _linear_problem()
+    blocks, rows, shared = a.shape
+    local = c.shape[-1]
+    dense = np.zeros((blocks * rows, shared + blocks * local))
+    for b in range(blocks):
+        dense[b * rows : (b + 1) * rows, :shared] = a[b]
+        dense[b * rows : (b + 1) * rows, shared + b * local : shared + (b + 1) * local] = c[b]
+    answer = np.linalg.lstsq(dense, y.reshape(-1), rcond=None)[0]
+    covariance = np.linalg.inv(dense.T @ dense)[:shared, :shared]
+
+    def residual(p, s_b, d):
+        return d["a"] @ p + d["c"] @ s_b - d["y"]
+
+    data = {"a": jnp.asarray(a), "c": jnp.asarray(c), "y": jnp.asarray(y)}
+    solution = block_levenberg_marquardt(residual, np.ones(shared), np.ones((blocks, local)), data, iterations=50)
+    np.testing.assert_allclose(solution.p, answer[:shared], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(solution.s.reshape(-1), answer[shared:], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.inv(solution.reduced), covariance, rtol=1e-8)
+    expected = float(np.sum((dense @ answer - y.reshape(-1)) ** 2))
+    np.testing.assert_allclose(solution.cost, expected, rtol=1e-10)
+    assert solution.count == blocks * rows
+
+
+def test_a_nonlinear_problem_steps_only_downhill_to_its_exact_answer():
+    """r_b = exp(p0 t) + p1 + s_b t^2 - data from p = (-0.7, 0.3), s = (0.1, -0.2, 0.4): noise-free,
+    so the answer is exact; every accepted step lowers the cost."""
+    t = jnp.linspace(0.0, 2.0, 25)
+    truth_p, truth_s = np.array([-0.7, 0.3]), np.array([[0.1], [-0.2], [0.4]])
+
+    def residual(p, s_b, d):
+        return jnp.exp(p[0] * t) + p[1] + s_b[0] * t**2 - d
+
+    data = jnp.stack([residual(jnp.asarray(truth_p), jnp.asarray(s), 0.0) for s in truth_s])
+    solution = block_levenberg_marquardt(residual, np.array([0.2, -1.0]), np.zeros((3, 1)), data, iterations=60)
+    np.testing.assert_allclose(solution.p, truth_p, atol=1e-8)
+    np.testing.assert_allclose(solution.s, truth_s, atol=1e-8)
+    costs = [cost for cost, _ in solution.history] + [solution.cost]
+    assert all(later < earlier for earlier, later in zip(costs, costs[1:]))
