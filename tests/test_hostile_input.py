@@ -65,6 +65,11 @@ def test_experiment_target_file_reads_a_float32_file(float32_recording):
     result = _jaxspring("fit", "exp.toml", "--out", "exp.fit.h5", "--quiet", cwd=float32_recording)
     assert result.returncode == 0, result.stderr
     _fitted_loss_fell(float32_recording / "exp.fit.h5")
+    assert "file values" in result.stdout and " true " not in result.stdout  # the file's own values, not a truth
+    experiment = js.load_experiment(float32_recording / "exp.toml")
+    assert experiment.observations().truth_label == "file"
+    declared = experiment.replace(true_values={"ks": 612.0}).observations()  # [target.true] with a file
+    assert declared.truth_label == "true" and float(declared.truth["ks"]) == 612.0
 
 
 def test_observations_take_the_fits_precision(float32_recording):
@@ -263,6 +268,9 @@ def _replace(dataset, data):
 MALFORMED = {
     "zero frames": (_replace("trajectory/x", np.zeros((0, 20, 3))), "no frames"),
     "nan t": (lambda f: f["trajectory/t"].__setitem__(3, np.nan), "not finite"),
+    "inf t": (lambda f: f["trajectory/t"].__setitem__(3, np.inf), "not finite"),
+    "array dt": (lambda f: f.attrs.__setitem__("dt", np.ones(3)), "malformed"),
+    "group as t": (lambda f: (f.__delitem__("trajectory/t"), f.create_group("trajectory/t")), "malformed"),
     "decreasing t": (_replace("trajectory/t", np.linspace(1.0, 0.0, 21)), "strictly increasing"),
     "zero t": (_replace("trajectory/t", np.zeros(21)), "strictly increasing"),
     "rest length": (_replace("topology/rest_length", np.ones(3)), "rest_length"),
@@ -280,6 +288,10 @@ def test_malformed_trajectory_files_are_refused_in_one_line(float32_recording, t
     mutate, word = MALFORMED[case]
     path = _mutated(float32_recording / "rec.h5", tmp_path, "bad", mutate)
     _refused(capsys, tmp_path, "render", path, "--out", tmp_path / "bad.png", naming=(word,))
+    if case in ("lattice", "mass (N, 1)", "zero frames"):  # measured: these crashed `fit`
+        _refused(
+            capsys, tmp_path, "fit", "--target", path, "--params", "ks", "--out", tmp_path / "f.h5", naming=(word,)
+        )
 
 
 def test_check_never_says_ok_about_a_scene_that_blows_up(capsys, tmp_path):
@@ -533,3 +545,89 @@ def test_api_spring_indices_are_checked_whatever_their_type(springs, message):
         js.make_model(springs=springs, mass=[1.0, 1.0], rest_length=[1.0])
     with pytest.raises(js.InputError, match="pinned: particle index 18446744073709551616 out of range"):
         js.make_model(springs=[[0, 1]], mass=[1.0, 1.0], rest_length=[1.0], pinned=[2**64])
+
+
+def test_wording_of_refusals_names_the_real_field_and_reason(inputs, capsys, tmp_path):
+    """Measured: non-regular files called "not found", a scene's own steps blamed on --steps, a
+    huge lattice count called an index, float32 overflow called "NaN or infinity"."""
+    chain = resolve_scene_path("chain").read_text()
+    (tmp_path / "s.toml").write_text(chain.replace("steps = ", "steps = 100000000000000000000000 #", 1))
+    _refused(capsys, tmp_path, "run", tmp_path / "s.toml", "--out", tmp_path / "q.h5", naming=("chain: steps",))
+    (tmp_path / "s.toml").write_text(chain.replace("steps = ", "steps = 1e23 #", 1))
+    _refused(capsys, tmp_path, "run", tmp_path / "s.toml", "--out", tmp_path / "q.h5", naming=("steps", "integer"))
+    (tmp_path / "l.toml").write_text(
+        'name = "l"\ndt = 0.001\n[physics]\nks = 1.0\nkd = 0.0\n[lattice]\nshape = [99999999999999999999]\n'
+    )
+    _refused(capsys, tmp_path, "run", tmp_path / "l.toml", "--out", tmp_path / "q.h5", naming=("beyond any lattice",))
+    _refused(capsys, tmp_path, "render", "/dev/zero", "--out", tmp_path / "x.png", naming=("not a regular file",))
+    _refused(capsys, tmp_path, "fit", "/dev/zero", "--out", tmp_path / "f.h5", naming=("not a regular file",))
+    fifo = tmp_path / "fifo.h5"
+    os.mkfifo(fifo)
+    _refused(
+        capsys,
+        tmp_path,
+        "fit",
+        "--target",
+        fifo,
+        "--params",
+        "ks",
+        "--out",
+        tmp_path / "f.h5",
+        naming=("not a regular file",),
+    )
+    fifo.unlink()
+    result = _jaxspring("run", "chain", "--set", "ks=1e308", "--out", "q.h5", cwd=tmp_path)  # float32: a fresh process
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "ks: 1e+308 overflows float32" in result.stderr and "--dtype float64" in result.stderr
+    assert not (tmp_path / "q.h5").exists()
+    _refused(
+        capsys,
+        inputs,
+        "render",
+        inputs / "R.h5",
+        "--out",
+        tmp_path / "r.gif",
+        "--max-frames",
+        "0",
+        naming=("--max-frames",),
+    )
+    experiment = tmp_path / "e.toml"
+    experiment.write_text((inputs / "exp.toml").read_text().replace("[target]", "[target]\nnoise = nan"))
+    (tmp_path / "c.toml").write_text((inputs / "c.toml").read_text())
+    _refused(capsys, tmp_path, "fit", experiment, "--out", tmp_path / "f.h5", naming=("noise",))
+    scene = js.load_scene("chain")
+    with pytest.raises(js.InputError, match="init.ks: 'abc' is not a number"):
+        js.fit(scene, js.synthetic_observations(scene, {}, 20, 10), ["ks"], init={"ks": "abc"})
+
+
+def test_tiny_masses_are_warned_about_by_check(capsys, tmp_path):
+    scene = tmp_path / "light.toml"
+    scene.write_text(resolve_scene_path("chain").read_text().replace("mass = 1.0", "mass = 1e-300"))
+    assert main(["check", str(scene)]) == 1
+    assert "expect a blow-up" in capsys.readouterr().err
+
+
+def test_numpy_warnings_never_lengthen_the_error_line(tmp_path):
+    """In a fresh process (pytest would catch warnings in-process): a scene whose estimate
+    overflows, where NumPy warns, still ends in exactly one line."""
+    scene = tmp_path / "light.toml"
+    scene.write_text(resolve_scene_path("chain").read_text().replace("mass = 1.0", "mass = 1e-320"))
+    for command in (["check", str(scene)], ["run", str(scene), "--out", str(tmp_path / "q.h5"), "--quiet"]):
+        result = _jaxspring(*command, cwd=tmp_path)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.count("\n") == 1 and result.stderr.startswith("jaxspring: error: "), result.stderr
+
+
+def test_the_folder_is_synced_after_the_rename(tmp_path, monkeypatch):
+    from jaxspring.io import trajectory
+
+    events = []
+    monkeypatch.setattr(trajectory.os, "replace", lambda a, b: (events.append("rename"), os.rename(a, b)))
+    real = trajectory._fsync_folder
+    monkeypatch.setattr(
+        trajectory, "_fsync_folder", lambda folder: (events.append(("sync", Path(folder))), real(folder))
+    )
+    with trajectory.atomic_path(tmp_path / "out.h5") as tmp:
+        Path(tmp).write_bytes(b"x")
+    assert events == ["rename", ("sync", tmp_path)]
+    assert (tmp_path / "out.h5").read_bytes() == b"x"

@@ -72,8 +72,12 @@ def prepare_scene(args):
         return scene, None, None
     steps = scene.steps if args.steps is None else args.steps
     save_every = scene.save_every if args.save_every is None else args.save_every
-    steps = step_count(steps, "--steps", minimum=1)
-    frame_count(steps, save_every, fields=("--steps", "--save-every"))
+    fields = (
+        "--steps" if args.steps is not None else f"{scene.name}: steps",
+        "--save-every" if args.save_every is not None else f"{scene.name}: save_every",
+    )
+    steps = step_count(steps, fields[0], minimum=1)
+    frame_count(steps, save_every, fields=fields)
     return scene, steps, save_every
 
 

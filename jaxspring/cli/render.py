@@ -22,10 +22,13 @@ def add_parser(sub):
 
 
 def command(args):
+    from ..errors import InputError
     from ..io.trajectory import load_trajectory
     from ..resources import parse_size
 
     limit = parse_size(args.max_memory) if args.max_memory else None
+    if args.max_frames < 1:
+        raise InputError("--max-frames", f"must be >= 1, got {args.max_frames}", "give a positive frame count")
     out = Path(args.out) if args.out else Path(args.file).with_suffix(".gif")
     check_output(out, inputs=[args.file])
     scene, trajectory = load_trajectory(args.file, max_memory=limit)

@@ -37,7 +37,10 @@ def check_names(scene: Scene, names, init: dict | None):
             raise InputError(
                 "init", f"{name!r} is given a start value but is not fitted", "add it to the fitted params"
             )
-        value = np.asarray(value, dtype=float)
+        try:
+            value = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"init.{name}", f"{value!r:.60} is not a number", "give a positive start value") from None
         if not np.all(np.isfinite(value)) or np.any(value <= 0):
             raise InputError(
                 f"init.{name}", f"must be > 0 (fitted in log space), got {value}", "give a positive start value"

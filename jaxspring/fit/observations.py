@@ -26,6 +26,8 @@ class Observations:
             free particle is observed; multiple shooting starts its segments from them.
         noise_std: the observation noise's standard deviation [m] when known (synthetic targets).
         truth: the true parameter values when known (synthetic targets), name -> array.
+        truth_label: what `truth` is: "true" (synthetic, or declared by the experiment) or
+            "file" (the parameters a target file was written with: a reference, not the truth).
 
     Example:
         >>> obs = js.synthetic_observations(scene, {"ks": 1000.0}, steps=1000, save_every=10)
@@ -38,6 +40,7 @@ class Observations:
     states: Trajectory | None = None
     noise_std: float = 0.0
     truth: dict | None = None
+    truth_label: str = "true"
 
     @property
     def frame_count(self) -> int:

@@ -52,7 +52,8 @@ class FitResult:
         iterations: iterations run in all.
         wall_s: wall time [s].
         identifiability: Gauss-Newton standard errors and correlations (None if skipped).
-        truth: true values when known (synthetic targets).
+        truth: true values when known (synthetic targets), or a target file's own values.
+        truth_label: "true", or "file" when `truth` holds a target file's values.
     """
 
     names: tuple
@@ -66,6 +67,7 @@ class FitResult:
     wall_s: float
     identifiability: Identifiability | None
     truth: dict | None = None
+    truth_label: str = "true"
 
     @property
     def final_loss(self) -> float:
@@ -85,7 +87,9 @@ class FitResult:
         """A plain-text table: fitted value, true value, relative error, standard error."""
         ident = self.identifiability
         width = max([7] + [len(n) + 1 for n in self.names])
-        rows = [f"{'param':<{width}}{'initial':>12}{'fitted':>14}{'true':>12}{'rel. error':>12}{'std. error':>12}"]
+        label = "file values" if self.truth_label == "file" else "true"
+        diff = "rel. diff." if self.truth_label == "file" else "rel. error"
+        rows = [f"{'param':<{width}}{'initial':>12}{'fitted':>14}{label:>12}{diff:>12}{'std. error':>12}"]
         errors = self.relative_errors()
         for n in self.names:
             value = np.asarray(self.final[n])

@@ -6,6 +6,8 @@ import dataclasses
 import glob
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputError
 from ..fit.observations import Observations, observations_from_trajectory, synthetic_observations
 from ..fit.recordings import LOSSES, RecordingTarget, recording_target
@@ -28,7 +30,9 @@ class Experiment:
         init: start values, name -> value.
         settings: optimiser settings (FitSettings).
         target_file: a recorded trajectory file to fit, or None for a synthetic target.
-        true_values: parameters of the synthetic target (default: the scene's own).
+        true_values: parameters of the synthetic target (default: the scene's own); with a
+            target file, the truth the experiment declares (else the file's values are shown
+            as "file values", not as the truth).
         steps, save_every: length and frame stride of the synthetic target.
         noise: observation noise of the synthetic target, relative to the RMS displacement.
         seed: random seed of the noise.
@@ -77,7 +81,11 @@ class Experiment:
         if self.recordings:
             return self.recording_target(self.recordings)
         if self.target_file is not None:
-            return observations_from_file(self.scene, self.target_file, self.particles)
+            observations = observations_from_file(self.scene, self.target_file, self.particles)
+            if self.true_values:  # the experiment declares the truth
+                truth = {k: np.asarray(v) for k, v in self.true_values.items()}
+                observations = dataclasses.replace(observations, truth=truth, truth_label="true")
+            return observations
         return synthetic_observations(
             self.scene, self.true_values or {}, self.steps, self.save_every, self.noise, self.seed, self.particles
         )
@@ -115,7 +123,9 @@ def recording_paths(patterns, base: Path, field: str) -> tuple:
 
 
 def observations_from_file(scene: Scene, path, particles=None) -> Observations:
-    """Observations from a trajectory file, checked against `scene`; the file's params become the known truth."""
+    """Observations from a trajectory file, checked against `scene`; the file's own params are
+    kept as reference values (`truth_label` "file": what the file was written with, which an
+    independent recording of the same scene need not share)."""
     recorded, trajectory = load_trajectory(path)
     if recorded.model.particle_count != scene.model.particle_count:
         raise InputError(
@@ -125,7 +135,8 @@ def observations_from_file(scene: Scene, path, particles=None) -> Observations:
         )
     truth = recorded.model.parameter_values(recorded.params)
     try:
-        return observations_from_trajectory(scene, trajectory, recorded.save_every, particles, truth=truth)
+        observations = observations_from_trajectory(scene, trajectory, recorded.save_every, particles, truth=truth)
+        return dataclasses.replace(observations, truth_label="file")
     except InputError as exc:
         raise exc.within(str(path)) from None
 
@@ -137,7 +148,7 @@ def load_experiment(path) -> Experiment:
         >>> experiment = js.load_experiment("fitting/cloth.toml")
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputError("experiment", f"file {str(path)!r} not found", "give a path to an experiment TOML file")
     document = schema.read_toml(path, "experiment")
     try:

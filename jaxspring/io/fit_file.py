@@ -131,8 +131,10 @@ def load_fitted(path) -> dict:
         >>> fitted = load_fitted("rope.fit.h5"); fitted["final"]
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileFormatError(f"{path}: file not found; give a fit file written by `jaxspring fit`")
+    if not path.is_file():
+        raise FileFormatError(f"{path}: not a regular file; give a fit file written by `jaxspring fit`")
     with open_hdf5(path, "fit again with `jaxspring fit`") as f:
         if f.attrs.get("format") != FIT_FORMAT:
             raise FileFormatError(f"{path}: not a jaxspring fit file; give one written by `jaxspring fit`")

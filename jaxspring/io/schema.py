@@ -30,7 +30,7 @@ def read_toml(path: Path, what: str) -> dict:
     try:
         info = path.stat()
         if not stat.S_ISREG(info.st_mode):  # a device or a FIFO would be read forever
-            raise InputError(what, "is not a regular file", f"give a {what} TOML file", source=str(path))
+            raise InputError(what, "is not a regular file", f"give a regular {what} TOML file", source=str(path))
         if info.st_size > MAX_TOML_BYTES:
             raise InputError(
                 what,
@@ -231,6 +231,9 @@ def index_triples(value):
 def shape(value):
     if not isinstance(value, list) or not 1 <= len(value) <= 3:
         raise Bad("must be a list of 1 to 3 counts", "write e.g. [31, 41]")
+    for v in value:
+        if isinstance(v, int) and not isinstance(v, bool) and v >= 2**63:
+            raise Bad(f"count {v} is beyond any lattice", "write e.g. [31, 41]")
     counts = [index(v) for v in value]
     if any(c < 1 for c in counts):
         raise Bad("counts must be >= 1", "give positive counts")

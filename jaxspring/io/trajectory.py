@@ -190,8 +190,10 @@ def load_trajectory(path, max_memory: int | None = None) -> tuple[Scene, Traject
         >>> scene, traj = js.load_trajectory("cloth.h5")
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileFormatError(f"{path}: file not found; check the path")
+    if not path.is_file():  # a device or a FIFO would be read forever
+        raise FileFormatError(f"{path}: not a regular file; give a trajectory file written by `jaxspring run`")
     with open_hdf5(path, "re-create it with `jaxspring run`") as f:
         if f.attrs.get("format") != TRAJECTORY_FORMAT:
             raise FileFormatError(

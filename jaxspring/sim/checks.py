@@ -66,7 +66,26 @@ def _check_value(model: Model, name: str, value, per, count=None):
         raise InputError(name, f"has shape {value.shape}", f"give {' or '.join(allowed.values())}")
     if name.partition(".")[0] in NON_NEGATIVE and np.any(value < 0):
         raise InputError(name, f"must be >= 0, got {value.min():g}", f"set a non-negative {name}")
-    return jnp.asarray(value, dtype=float)
+    out = jnp.asarray(value, dtype=float)
+    check_representable(name, value, out.dtype)
+    return out
+
+
+def check_representable(name, value, dtype) -> None:
+    """Refuse a finite number that overflows `dtype` (1e308 in float32) in one line naming it,
+    rather than as an infinity later."""
+    try:
+        value = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return  # not numbers: the value checks say so
+    largest = float(np.finfo(np.dtype(dtype)).max)
+    big = np.abs(value[np.isfinite(value)])
+    if big.size and big.max() > largest:
+        raise InputError(
+            name,
+            f"{float(big.max()):g} overflows {np.dtype(dtype)} (largest {largest:.3g})",
+            "run in float64 (--dtype float64) or give a smaller value",
+        )
 
 
 def _check_group_values(model: Model, name: str, values: dict) -> dict:

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..steppers import check_backend
-from .checks import check_params
+from .checks import check_params, check_representable
 from .integrators import as_integrator
 from .model import Model
 from .params import Params, split_name
@@ -64,6 +64,8 @@ class Scene:
         unknown = [k for k in values if split_name(k)[0] not in Params.names()]
         if unknown:
             raise InputError(unknown[0], "is not a parameter", f"use one of {', '.join(Params.names())}")
+        for name, value in values.items():
+            check_representable(name, value, self.model.mass.dtype)
         return dataclasses.replace(self, params=check_params(self.model, self.model.params_with(self.params, values)))
 
     def with_integrator(self, integrator) -> Scene:
