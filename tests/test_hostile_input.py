@@ -192,7 +192,7 @@ def test_outputs_in_a_folder_or_an_unwritable_place(inputs, capsys):
 def test_render_needs_at_least_one_frame(inputs, capsys, count):
     _refused(
         capsys, inputs, "render", inputs / "R.h5", "--out", inputs / "R.gif", "--max-frames", count,
-        naming=["max_frames", f"got {count}"],
+        naming=["--max-frames", f"got {count}"],
     )  # fmt: skip
 
 
@@ -616,6 +616,9 @@ def test_numpy_warnings_never_lengthen_the_error_line(tmp_path):
         result = _jaxspring(*command, cwd=tmp_path)
         assert result.returncode == 2, result.stderr
         assert result.stderr.count("\n") == 1 and result.stderr.startswith("jaxspring: error: "), result.stderr
+    before = np.geterr()  # in-process, the command leaves NumPy's settings as it found them
+    assert main(["check", str(scene)]) == 2
+    assert np.geterr() == before
 
 
 def test_the_folder_is_synced_after_the_rename(tmp_path, monkeypatch):

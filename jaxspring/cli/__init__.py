@@ -38,15 +38,15 @@ def main(argv=None) -> int:
     from ..errors import JaxspringError
 
     # numerical trouble is reported by the commands in one line; NumPy's own warnings would
-    # turn that line into several
-    warnings.simplefilter("ignore", RuntimeWarning)
-    np.seterr(all="ignore")
+    # turn that line into several (silenced only while the command runs)
     try:
-        if getattr(args, "dtype", "float32") == "float64" or (args.command == "bench" and args.kind == "accuracy"):
-            import jax
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            if getattr(args, "dtype", "float32") == "float64" or (args.command == "bench" and args.kind == "accuracy"):
+                import jax
 
-            jax.config.update("jax_enable_x64", True)
-        return COMMANDS[args.command].command(args) or 0
+                jax.config.update("jax_enable_x64", True)
+            return COMMANDS[args.command].command(args) or 0
     except JaxspringError as exc:
         print(f"jaxspring: error: {exc}", file=sys.stderr)
         return EXIT_USER_ERROR
