@@ -115,8 +115,8 @@ def test_same_model_recordings_give_back_stiffness_and_drag(rope):
 
 def test_fitting_the_start_state_removes_the_start_frames_noise_from_the_damping(rope):
     """Noise on the free markers only (ends driven exactly, as a robot reports them): the start
-    rule's noisy start state sets off motion that kd is fitted to damp (measured +14%); with
-    the start states fitted, every value comes back within 4% (measured kd -3.8%, ks +0.1%)."""
+    rule's noisy start state sets off motion that kd is fitted to damp (measured +13%); with
+    the start states fitted, every value comes back within 4% (measured kd -2.0%, ks -0.0%)."""
     recs = [
         js.Recording(t=r.t, x=np.where(np.isin(np.arange(N), [0, N - 1])[None, :, None], clean.x, r.x))
         for r, clean in zip(make_recordings(rope, 3, 150, noise=1e-3), make_recordings(rope, 3, 150, noise=0.0))

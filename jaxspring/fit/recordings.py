@@ -131,7 +131,7 @@ def recording_target(
         fit_start: also fit every recording's start state (the free particles' positions and
             velocities, as corrections to the start rule's), with the start frame's markers
             in the misfit: noise in the start frame's markers otherwise sets off motion
-            (measured: +14% on a rope's kd from 1 mm noise) that damping is fitted to hide.
+            (measured: +13% on a rope's kd from 1 mm noise) that damping is fitted to hide.
 
     Example:
         >>> target = recording_target(scene, [js.load_recording("take1.h5")], driven=[0, 11])
