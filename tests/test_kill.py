@@ -43,7 +43,7 @@ def _kill_after(process, seconds) -> bool:
         return True
 
 
-def test_run_killed_at_random_moments_leaves_an_old_or_new_complete_file(tmp_path):
+def test_run_killed_at_random_moments_leaves_an_old_or_new_complete_file(tmp_path, capsys):
     rng = np.random.default_rng(3)
     run = ["run", "mass_spring", "--steps", "3000", "--save-every", "10", "--out", "out.h5", "--quiet"]
     _timed("run", "mass_spring", "--steps", "1000", "--save-every", "10", "--out", "out.h5", "--quiet", cwd=tmp_path)
@@ -61,7 +61,8 @@ def test_run_killed_at_random_moments_leaves_an_old_or_new_complete_file(tmp_pat
         (tmp_path / "out.h5").write_bytes(old)
     assert _timed(*run, cwd=tmp_path) > 0  # a later write removes what killed writes left
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h5"]
-    print(f"\nrun: {kills} kills, {outcomes} ended with the new file")
+    with capsys.disabled():  # the count shows in CI's log
+        print(f"\nkill test, run: {kills} kills, {outcomes} ended with the new file")
 
 
 def _complete(path: Path, frames: int) -> bool:
@@ -69,7 +70,7 @@ def _complete(path: Path, frames: int) -> bool:
     return trajectory.x.shape[0] == frames
 
 
-def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_path):
+def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_path, capsys):
     rng = np.random.default_rng(5)
     experiment = tmp_path / "exp.toml"
     experiment.write_text(
@@ -94,7 +95,8 @@ def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_pa
     _timed(*fit, "--out", "killed.h5", *resume, cwd=tmp_path)
     assert _final(tmp_path / "killed.h5") == _final(tmp_path / "straight.h5")
     assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]  # killed writes' leftovers removed
-    print(f"\nfit: {kills} kills, resumed to the uninterrupted result")
+    with capsys.disabled():
+        print(f"\nkill test, fit: {kills} kills, resumed to the uninterrupted result")
 
 
 def _final(path: Path) -> dict:
