@@ -110,6 +110,7 @@ def _fit_problem(args):
             start=experiment.start,
             smooth=experiment.smooth,
             fit_start=experiment.fit_start,
+            fit_driven=experiment.fit_driven,
             loss=experiment.loss,
             huber_scale=experiment.huber_scale,
         )

@@ -22,6 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 
 
+NOISE_FRACTION = 1e-4
+"""A step lowering the cost by less than this fraction of the noise variance ends the solve."""
+
+
 @dataclasses.dataclass
 class BlockSolution:
     """p (P,), s (B, L); history of (cost before, p before) per accepted step; cost = sum r^2;
@@ -74,7 +78,14 @@ def _solve(pieces, damping):
 
 def block_levenberg_marquardt(residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12) -> BlockSolution:
     """Minimise sum_b |residual(p, s_b, data_b)|^2 from (p (P,), s (B, L)); data: a pytree of
-    (B, ...) arrays. A step is taken only when the cost falls (never worse than given)."""
+    (B, ...) arrays. A step is taken only when the cost falls (never worse than given).
+
+    Stops after `iterations` steps, when a step changes p by at most `tolerance` and the
+    cost by at most that fraction, or when a step lowers the cost by less than
+    `NOISE_FRACTION` of the noise variance the cost implies (cost / degrees of freedom):
+    then p is within about sqrt(NOISE_FRACTION) standard errors of the minimum, and
+    further steps (linear convergence when the residuals are noise, not zero) move it
+    by amounts no one can measure."""
     pieces_fn = jax.jit(lambda p, s, d: _normal_pieces(residual, p, s, d))
     cost_fn = jax.jit(lambda p, s, d: _costs(residual, p, s, d).sum())
     solve = jax.jit(_solve)
@@ -82,6 +93,7 @@ def block_levenberg_marquardt(residual, p, s, data, iterations: int = 20, tolera
     pieces = pieces_fn(p, s, data)
     cost = float(pieces[0].sum())
     count = int(jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data))).shape[0])
+    freedom = max(count * s.shape[0] - p.size - s.size, 1)
     history, damping = [], 1e-3
     for _ in range(iterations):
         accepted = False
@@ -96,12 +108,13 @@ def block_levenberg_marquardt(residual, p, s, data, iterations: int = 20, tolera
             break
         history.append((cost, np.asarray(p)))
         improvement = (cost - new_cost) / max(cost, 1e-300)
+        below_noise = cost - new_cost <= NOISE_FRACTION * new_cost / freedom
         p, s, cost = p + dp, s + ds, new_cost
         damping = max(damping / 10.0, 1e-12)
         pieces = pieces_fn(p, s, data)
         if float(jnp.max(jnp.abs(dp), initial=0.0)) <= tolerance and improvement <= tolerance:
             break
-        if improvement <= tolerance**2:
+        if improvement <= tolerance**2 or below_noise:
             break
     _, _, reduced = solve(pieces, 0.0)
     return BlockSolution(np.asarray(p), np.asarray(s), history, cost, np.asarray(reduced), count * s.shape[0])

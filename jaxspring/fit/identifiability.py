@@ -109,16 +109,18 @@ def gauss_newton_polish(scene, observations, names, values, settings, max_parame
     return steps
 
 
-def start_polish(scene, target, names, values, start, settings):
-    """Levenberg-Marquardt on the parameters and every recording's start state together
-    (`block_lm`: the recordings' start states are eliminated each step), from the
-    first-order optimiser's answer; steps only downhill. Returns polish steps with
-    `.final`, `.final_loss`, `.start` (R, N, 6) and `.reduced` (the parameters' normal
-    matrix with the start states estimated, for their standard errors)."""
+def start_polish(scene, target, names, values, nuisance, settings):
+    """Levenberg-Marquardt on the parameters and every recording's start state (and driven
+    paths, with `fit_driven`) together (`block_lm`: each recording's own unknowns are
+    eliminated each step), from the first-order optimiser's answer and `nuisance`
+    ({"start": ..., "driven": ...}); steps only downhill. Returns polish steps with
+    `.final`, `.final_loss`, `.nuisance` (same keys), `.unknowns` (how many were
+    estimated) and `.reduced` (the parameters' normal matrix with them estimated, for
+    the standard errors)."""
     from .block_lm import block_levenberg_marquardt
     from .recording_loss import block_problem
 
-    p0, unravel, s0, residual, data, to_start = block_problem(scene, target, names, values, start)
+    p0, unravel, s0, residual, data, to_nuisance = block_problem(scene, target, names, values, nuisance)
     solution = block_levenberg_marquardt(
         residual, p0, s0, data, iterations=max(settings.polish_iterations, 30), tolerance=settings.step_tolerance
     )
@@ -126,7 +128,9 @@ def start_polish(scene, target, names, values, start, settings):
     to_values = lambda v: {n: np.asarray(jnp.exp(x)) for n, x in unravel(jnp.asarray(v)).items()}  # noqa: E731
     steps = _PolishSteps((cost / count, to_values(p)) for cost, p in solution.history)
     steps.final, steps.final_loss = to_values(solution.p), solution.cost / count
-    steps.start, steps.reduced = to_start(solution.s), solution.reduced
+    steps.nuisance, steps.reduced = to_nuisance(solution.s), solution.reduced
+    unseen_padding = 3 * len(target.driven) * int(np.sum(target.frame_count - target.lengths)) if target.fit_driven else 0
+    steps.unknowns = int(s0.size) - unseen_padding
     return steps
 
 

@@ -20,7 +20,7 @@ from .ensemble import ensemble_step_function
 from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
-from .recording_loss import start_unknowns, with_fitted_start
+from .recording_loss import NUISANCE, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget
 from .results import FitProgress, FitResult
 from .settings import FitSettings, Stage, plan_stages
@@ -302,9 +302,9 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         stage_of_iteration = list(progress.stage_of_iteration)
         polish_start = time.perf_counter()
         if "start" in progress.theta:  # fitted start states: always polished with them (least squares)
-            start_member = np.asarray(progress.theta["start"][member])
-            steps = start_polish(scene, obs, names, final, start_member, settings) if obs.loss == "mse" else []
-            obs = with_fitted_start(obs, steps.start if steps else start_member)  # reported with them held
+            nuisance = {k: np.asarray(progress.theta[k][member]) for k in NUISANCE if k in progress.theta}
+            steps = start_polish(scene, obs, names, final, nuisance, settings) if obs.loss == "mse" else []
+            obs = with_fitted_start(obs, steps.nuisance if steps else nuisance)  # reported with them held
         else:
             steps = gauss_newton_polish(scene, obs, names, final, settings) if settings.polish else []
         for loss_before, values_before in steps:
@@ -318,8 +318,8 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         else:
             final_loss_member = final_loss[member]
         reduced = getattr(steps, "reduced", None)  # start states estimated too: their uncertainty counts
-        nuisance = int(np.count_nonzero(obs.free)) * 6 * len(obs.names) if reduced is not None else 0
-        ident = identifiability(scene, obs, names, final, normal=reduced, nuisance=nuisance) if identify else None
+        unknowns = steps.unknowns if reduced is not None else 0
+        ident = identifiability(scene, obs, names, final, normal=reduced, nuisance=unknowns) if identify else None
         results.append(
             FitResult(
                 names=names,

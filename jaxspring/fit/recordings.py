@@ -49,6 +49,7 @@ class RecordingTarget:
         dt: the scene's time step.
         loss: "mse", "l1" or "huber"; huber_scale: Huber's transition [m].
         fit_start: fit each recording's start state (see `recording_target`).
+        fit_driven: fit each recording's driven paths too (see `recording_target`).
         free: particles neither pinned nor driven, bool (N,).
     """
 
@@ -71,6 +72,7 @@ class RecordingTarget:
     save_every: int = 1
     fit_start: bool = False
     free: np.ndarray | None = None
+    fit_driven: bool = False
 
     @property
     def frame_count(self) -> int:
@@ -116,6 +118,7 @@ def recording_target(
     huber_scale=0.002,
     names=None,
     fit_start=False,
+    fit_driven=False,
 ):
     """Prepare `recordings` (a list of `Recording`) of `scene` as one fit target.
 
@@ -132,6 +135,12 @@ def recording_target(
             velocities, as corrections to the start rule's), with the start frame's markers
             in the misfit: noise in the start frame's markers otherwise sets off motion
             (measured: +13% on a rope's kd from 1 mm noise) that damping is fitted to hide.
+        fit_driven: also fit every recording's driven paths (a correction to each driven
+            marker's position at every frame; paths linear between frames) and the start
+            state (implies `fit_start`), with the driven markers in the misfit: noise on
+            the driven markers is otherwise noise in the force that moves the object,
+            which the parameters are fitted to explain (measured on a 6-particle rope,
+            1 mm noise, 10 noise seeds: kd 7-31% off with standard errors of 1-2%).
 
     Example:
         >>> target = recording_target(scene, [js.load_recording("take1.h5")], driven=[0, 11])
@@ -217,7 +226,8 @@ def recording_target(
         loss=loss,
         huber_scale=float(huber_scale),
         smooth=int(smooth),
-        fit_start=bool(fit_start),
+        fit_start=bool(fit_start or fit_driven),
+        fit_driven=bool(fit_driven),
         free=~(np.asarray(model.pinned, dtype=bool) | np.isin(np.arange(n), driven)),
     )
 

@@ -17,7 +17,8 @@ class FitProgress:
         stage: index of the current stage.
         iteration: iterations done in the current stage.
         theta: log parameter values, name -> (B, ...); with a fitted start state also
-            "start" -> (B, R, N, 6) (see `recording_loss.start_unknowns`).
+            "start" -> (B, R, N, 6), with fitted driven paths "driven" -> (B, R, F, D, 3)
+            (see `recording_loss.start_unknowns`).
         optimizer_leaves: the optimizer state's arrays (its structure is rebuilt from the settings).
         loss: loss before each completed iteration, list of (B,) arrays.
         values: parameter values before each completed iteration, name -> list of (B, ...) arrays.

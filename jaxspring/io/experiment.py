@@ -38,8 +38,9 @@ class Experiment:
         seed: random seed of the noise.
         particles: observed particles (None: every free particle).
         recordings: recording files to fit (the fitted values are shared by all of them).
-        markers, driven, start, smooth, fit_start: how recordings map onto the scene and whether
-            their start states are fitted too (see `recording_target`).
+        markers, driven, start, smooth, fit_start, fit_driven: how recordings map onto the
+            scene and whether their start states and driven paths are fitted too (see
+            `recording_target`).
         loss, huber_scale: the recordings' misfit ("mse", "l1" or "huber").
         evaluate: held-out recording files whose error `jaxspring fit` reports after fitting.
 
@@ -68,6 +69,7 @@ class Experiment:
     start: int = 1
     smooth: int = 0
     fit_start: bool = False
+    fit_driven: bool = False
     loss: str = "mse"
     huber_scale: float = 0.002
     evaluate: tuple = ()
@@ -105,6 +107,7 @@ class Experiment:
                 self.huber_scale,
                 names=tuple(Path(p).stem for p in paths),
                 fit_start=self.fit_start,
+                fit_driven=self.fit_driven,
             )
         except InputError as exc:
             raise exc.within("", "target") from None
@@ -181,6 +184,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     start = target.take("start", schema.count, default=1)
     smooth = target.take("smooth", schema.count, default=0)
     fit_start = target.take("fit_start", schema.boolean, default=False)
+    fit_driven = target.take("fit_driven", schema.boolean, default=False)
     true_table = target.table("true")
     true_values = None
     if true_table is not None:
@@ -264,6 +268,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         start=start,
         smooth=smooth,
         fit_start=fit_start,
+        fit_driven=fit_driven,
         loss=loss,
         huber_scale=huber_scale,
         evaluate=evaluate,

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..fit.identifiability import Identifiability, unique_names
+from ..fit.recording_loss import NUISANCE
 from ..fit.results import FitProgress, FitResult
 from .trajectory import atomic_path, open_hdf5
 
@@ -63,7 +64,7 @@ def save_fit(
         if progress.last_step is not None:
             optimizer.create_dataset("last_step", data=np.asarray(progress.last_step))
         theta = optimizer.create_group("theta")
-        for n in progress.theta:  # the log parameters, and a fitted start state ("start")
+        for n in progress.theta:  # the log parameters, and a fitted start state and driven paths
             theta.create_dataset(n, data=np.asarray(progress.theta[n]))
         if progress.optimizer_leaves is not None:
             leaves = optimizer.create_group("state")
@@ -111,7 +112,7 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
         return FitProgress(
             stage=int(optimizer.attrs["stage"]),
             iteration=int(optimizer.attrs["iteration"]),
-            theta={n: jnp.asarray(optimizer["theta"][n][()]) for n in [*names, "start"] if n in optimizer["theta"]},
+            theta={n: jnp.asarray(optimizer["theta"][n][()]) for n in [*names, *NUISANCE] if n in optimizer["theta"]},
             optimizer_leaves=leaves,
             loss=loss,
             values=values,
