@@ -58,3 +58,38 @@ def test_a_nonlinear_problem_steps_only_downhill_to_its_exact_answer():
     np.testing.assert_allclose(solution.s, truth_s, atol=1e-8)
     costs = [cost for cost, _ in solution.history] + [solution.cost]
     assert all(later < earlier for earlier, later in zip(costs, costs[1:]))
+
+
+def test_linked_blocks_reach_the_dense_least_squares_answer_and_its_covariance():
+    """Multiple shooting's structure: r_b = A_b p + C_b s_b - y_b and links G_b p + H_b s_b - s_{b+1}
+    (b < B - 1), so neighbouring blocks couple (block-tridiagonal); against the dense NumPy
+    solve of the stacked system."""
+    a, c, y = _linear_problem(blocks=5, seed=1)
+    blocks, rows, shared = a.shape
+    local = c.shape[-1]
+    rng = np.random.default_rng(2)
+    g, h = rng.normal(size=(blocks, local, shared)), rng.normal(size=(blocks, local, local))
+    links = (blocks - 1) * local
+    dense = np.zeros((blocks * rows + links, shared + blocks * local))
+    target = np.concatenate([y.reshape(-1), np.zeros(links)])
+    column = lambda b: slice(shared + b * local, shared + (b + 1) * local)  # noqa: E731
+    for b in range(blocks):
+        dense[b * rows : (b + 1) * rows, :shared] = a[b]
+        dense[b * rows : (b + 1) * rows, column(b)] = c[b]
+        if b < blocks - 1:
+            row = slice(blocks * rows + b * local, blocks * rows + (b + 1) * local)
+            dense[row, :shared], dense[row, column(b)], dense[row, column(b + 1)] = g[b], h[b], -np.eye(local)
+    answer = np.linalg.lstsq(dense, target, rcond=None)[0]
+    covariance = np.linalg.inv(dense.T @ dense)[:shared, :shared]
+
+    def residual(p, s_b, d):  # (the block's residuals, its link: the prediction of s_{b+1})
+        return d["a"] @ p + d["c"] @ s_b - d["y"], d["g"] @ p + d["h"] @ s_b
+
+    data = {k: jnp.asarray(v) for k, v in {"a": a, "c": c, "y": y, "g": g, "h": h}.items()}
+    solution = block_levenberg_marquardt(
+        residual, np.ones(shared), np.ones((blocks, local)), data, iterations=50, linked=True
+    )
+    np.testing.assert_allclose(solution.p, answer[:shared], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(solution.s.reshape(-1), answer[shared:], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.inv(solution.reduced), covariance, rtol=1e-8)
+    np.testing.assert_allclose(solution.cost, float(np.sum((dense @ answer - target) ** 2)), rtol=1e-10)

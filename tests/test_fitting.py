@@ -455,13 +455,13 @@ def test_a_fit_never_returns_a_point_worse_than_one_it_passed():
 def test_the_best_stage_wins_on_the_final_loss():
     """Stages judged on the final objective by a loss written in the test: stage 1 walked away
     from where stage 0 left it (log ks 0.1 from the optimum at 0; stage 1 ended at 2.0)."""
-    from jaxspring.fit.loop import _best_of_stages
+    from jaxspring.fit.best_point import best_of_stages
     from jaxspring.fit.results import FitProgress
 
     values = {
         "ks": [np.array([np.exp(3.0)]), np.array([np.exp(1.0)]), np.array([np.exp(0.1)]), np.array([np.exp(1.5)])]
     }
     progress = FitProgress(2, 0, {"ks": jnp.array([2.0])}, None, [np.ones(1)] * 4, values, [0, 0, 1, 1])
-    theta, loss = _best_of_stages(progress, ("ks",), lambda th, data: th["ks"] ** 2, None)
+    theta, loss = best_of_stages(progress, ("ks",), lambda th, data: th["ks"] ** 2, None)
     np.testing.assert_allclose(theta["ks"], [0.1], rtol=1e-12)
     np.testing.assert_allclose(loss, [0.01], rtol=1e-12)

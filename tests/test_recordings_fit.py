@@ -91,21 +91,27 @@ def test_recording_loss_gradient_matches_finite_differences(rope):
         np.testing.assert_allclose(grad[name], (up - down) / (2 * h), rtol=1e-5)
 
 
-def test_same_model_recordings_give_back_stiffness_and_drag(rope):
-    """Positions only, 1 mm noise on every frame (driven markers too), velocities unknown,
-    start states fitted: stiffness and drag within 2%; damping ~7% high (measured +7.1%, at
-    the least-squares optimum: the truth's cost is higher by 36 sigma^2), a bias of noisy
-    driven paths that no start state removes."""
-    recs = make_recordings(rope, 3, 150, noise=1e-3)
+def with_exact_ends(noisy, clean):
+    """`noisy` recordings whose driven ends (particles 0 and N - 1) are exact, as a robot reports them."""
+    ends = np.isin(np.arange(N), [0, N - 1])[None, :, None]
+    return [js.Recording(t=r.t, x=np.where(ends, c.x, r.x)) for r, c in zip(noisy, clean)]
+
+
+def test_same_model_recordings_give_back_the_true_values(rope):
+    """Positions only, 1 mm noise on every frame of the free markers, velocities unknown, ends
+    driven along paths known exactly, start states fitted: every value within 2% and within
+    3 standard errors (3 takes over 10 noise seeds: kd within 2.0%, ks 0.07%, cd 0.64%;
+    benchmarks/same_model_recordings.py); here 6 takes, so that 2% is 3 standard errors."""
+    recs = with_exact_ends(make_recordings(rope, 6, 150, noise=1e-3), make_recordings(rope, 6, 150, noise=0.0))
     target = js.recording_target(rope, recs, driven=[0, N - 1], start=1, smooth=5, fit_start=True)
     init = {"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}
     result = js.fit(rope, target, list(TRUTH), init=init, iterations=60)
     error = {n: float(result.final[n]) / TRUTH[n] - 1 for n in TRUTH}
-    assert abs(error["ks.stretch"]) < 0.02 and abs(error["cd"]) < 0.02, error
-    assert abs(error["kd.stretch"]) < 0.12, error
     se = result.identifiability.relative_standard_error
-    assert abs(error["ks.stretch"]) < 3 * float(se["ks.stretch"]) and abs(error["cd"]) < 3 * float(se["cd"])
+    for n in TRUTH:
+        assert abs(error[n]) < 0.02 and abs(error[n]) < 3 * float(se[n]), (n, error, se)
     assert result.stages[-1].kind == "gauss_newton"  # the start states' Levenberg-Marquardt polish ran
+    assert not result.identifiability.warnings, result.identifiability.warnings
     held = make_recordings(rope, 1, 150, noise=1e-3, seed=7)
     fitted = js.predict(rope, result.final, held, driven=[0, N - 1], smooth=5)[0]
     frozen = np.linalg.norm(held[0].x[2:] - held[0].x[1], axis=-1)
@@ -113,35 +119,56 @@ def test_same_model_recordings_give_back_stiffness_and_drag(rope):
     assert fitted.mean_absolute_error < 4e-3  # the held-out take starts from its noisy start frame
 
 
-def test_fitting_the_start_state_removes_the_start_frames_noise_from_the_damping(rope):
-    """Noise on the free markers only (ends driven exactly, as a robot reports them): the start
-    rule's noisy start state sets off motion that kd is fitted to damp (measured +13%); with
-    the start states fitted, every value comes back within 4% (measured kd -2.0%, ks -0.0%)."""
-    recs = [
-        js.Recording(t=r.t, x=np.where(np.isin(np.arange(N), [0, N - 1])[None, :, None], clean.x, r.x))
-        for r, clean in zip(make_recordings(rope, 3, 150, noise=1e-3), make_recordings(rope, 3, 150, noise=0.0))
-    ]
-    target = js.recording_target(rope, recs, driven=[0, N - 1], start=1, smooth=5, fit_start=True)
-    result = js.fit(rope, target, list(TRUTH), init={"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}, iterations=60)
-    error = {n: float(result.final[n]) / TRUTH[n] - 1 for n in TRUTH}
-    assert all(abs(e) < 0.04 for e in error.values()), error
-    assert abs(error["kd.stretch"]) < 3 * float(result.identifiability.relative_standard_error["kd.stretch"]), error
-
-
-def test_the_start_loss_gradient_matches_finite_differences(rope):
+def test_the_start_and_driven_path_loss_gradient_matches_finite_differences(rope):
     recs = make_recordings(rope, 2, 30, noise=1e-3)
-    target = js.recording_target(rope, recs, driven=[0, N - 1], smooth=3, fit_start=True)
-    loss = jax.jit(loss_function(rope, target, ["ks.stretch"], Stage("direct", 29)))
+    target = js.recording_target(rope, recs, driven=[0, N - 1], smooth=3, fit_driven=True)
+    loss = jax.jit(loss_function(rope, target, ["ks.stretch"], Stage("direct", 28)))  # 29 frames from start 1
     data = target_data(target)
-    start = jnp.asarray(np.random.default_rng(3).normal(size=(2, N, 6)))
-    theta = {"ks.stretch": jnp.log(350.0), "start": start}
-    grad = jax.grad(loss)(theta, data)["start"]
-    assert np.all(np.asarray(grad)[:, [0, N - 1]] == 0.0)  # driven particles' start is the path's
-    for index in [(0, 2, 0), (1, 3, 4), (0, 1, 5)]:
+    rng = np.random.default_rng(3)
+    theta = {
+        "ks.stretch": jnp.log(350.0),
+        "start": jnp.asarray(rng.normal(size=(2, N, 6))),
+        "driven": jnp.asarray(rng.normal(size=(2, 29, 2, 3))),
+    }
+    grad = jax.grad(loss)(theta, data)
+    assert np.all(np.asarray(grad["start"])[:, [0, N - 1]] == 0.0)  # driven particles' start is the path's
+    for key, index in [("start", (0, 2, 0)), ("start", (1, 3, 4)), ("start", (0, 1, 5))] + [
+        ("driven", (0, 0, 1, 2)),  # the start frame's path: the driven particle's start position
+        ("driven", (1, 17, 0, 0)),
+        ("driven", (0, 28, 1, 1)),  # the last frame: seen only as the driven marker
+    ]:
         h = 1e-4
-        up = loss({**theta, "start": start.at[index].add(h)}, data)
-        down = loss({**theta, "start": start.at[index].add(-h)}, data)
-        np.testing.assert_allclose(grad[index], (up - down) / (2 * h), rtol=1e-5)
+        up = loss({**theta, key: theta[key].at[index].add(h)}, data)
+        down = loss({**theta, key: theta[key].at[index].add(-h)}, data)
+        assert abs(float(grad[key][index])) > 1e-9, (key, index)
+        np.testing.assert_allclose(grad[key][index], (up - down) / (2 * h), rtol=1e-5)
+
+
+def test_fitted_driven_paths_take_the_driven_markers_noise_out_of_the_parameters(rope):
+    """1 mm noise on every marker, the driven ones too. Held as recorded, the noisy paths push
+    the rope and the values are fitted to explain it (10 noise seeds: kd 7-31% off under
+    standard errors of 1-2%; the report warns). With the paths fitted (`fit_driven`), every
+    value is within 3 of its standard errors, which now count the paths' uncertainty, and
+    the fitted paths are nearer the true ones than the recorded markers (a little: the rope
+    responds to a few of the paths' components; the others stay as recorded)."""
+    noisy, clean = make_recordings(rope, 2, 100, noise=1e-3, seed=2), make_recordings(rope, 2, 100, noise=0.0, seed=2)
+    held = js.recording_target(rope, noisy, driven=[0, N - 1], start=1, smooth=5, fit_start=True)
+    init = {"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}
+    result = js.fit(rope, held, list(TRUTH), init=init, iterations=60)
+    assert any("fit_driven" in w for w in result.identifiability.warnings)
+    assert result.estimated is not None and "driven" not in result.estimated
+    target = js.recording_target(rope, noisy, driven=[0, N - 1], start=1, smooth=5, fit_driven=True)
+    fitted = js.fit(rope, target, list(TRUTH), init=init, iterations=60)
+    se = fitted.identifiability.relative_standard_error
+    for n in TRUTH:
+        assert abs(float(fitted.final[n]) / TRUTH[n] - 1) < 3 * float(se[n]), (n, fitted.final[n], se[n])
+    assert not any("fit_driven" in w for w in fitted.identifiability.warnings)
+    paths = fitted.estimated["driven"]  # (R, F, D, 3) from the start frame on
+    true = np.stack([c.x[1:, [0, N - 1]] for c in clean])
+    recorded = np.stack([r.x[1:, [0, N - 1]] for r in noisy])
+    fitted_error, recorded_error = np.sqrt(np.mean((paths - true) ** 2)), np.sqrt(np.mean((recorded - true) ** 2))
+    assert fitted_error < 0.95 * recorded_error, (fitted_error, recorded_error)  # measured 0.93 mm against 1.01 mm
+    np.testing.assert_allclose(fitted.estimated["x0"][:, [0, N - 1]], paths[:, 0])
 
 
 @pytest.fixture(scope="module")
@@ -278,14 +305,16 @@ def _noise_free():
     return scene, js.recording_target(scene, make_recordings(scene, 2, 45, noise=0.0), driven=[0, N - 1], smooth=5)
 
 
-def test_a_fitted_start_state_is_kept_for_resume(tmp_path):
+def test_a_fitted_start_state_and_driven_paths_are_kept_for_resume(tmp_path):
     from jaxspring.fit.results import FitProgress
     from jaxspring.io.fit_file import load_fit_progress, save_fit
 
     start = np.random.default_rng(0).normal(size=(1, 2, N, 6))
-    theta = {"ks.stretch": jnp.full((1,), 5.9), "start": jnp.asarray(start)}
+    driven = np.random.default_rng(1).normal(size=(1, 2, 30, 2, 3))
+    theta = {"ks.stretch": jnp.full((1,), 5.9), "start": jnp.asarray(start), "driven": jnp.asarray(driven)}
     progress = FitProgress(0, 3, theta, None, [np.ones(1)] * 3, {"ks.stretch": [np.ones(1)] * 3}, [0, 0, 0])
     save_fit(tmp_path / "f.h5", {"a": 1}, ["ks.stretch"], {"ks.stretch": 300.0}, progress)
     loaded = load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks.stretch"])
     np.testing.assert_array_equal(loaded.theta["start"], start)
+    np.testing.assert_array_equal(loaded.theta["driven"], driven)
     np.testing.assert_array_equal(loaded.theta["ks.stretch"], [5.9])

@@ -11,6 +11,13 @@ estimated too (not held), which the identifiability report uses.
 
 Blocks' Jacobians are taken in forward mode, one block at a time (`lax.map`), so memory
 holds one block's Jacobian (its residual count x (P + L)) at once.
+
+Linked blocks (multiple shooting: block b's simulated end predicts block b + 1's start):
+`residual` returns (r_b, link_b), and the residuals also hold link_b - s_{b+1} for
+b < B - 1, so neighbouring blocks
+couple: the blocks' part of the normal matrix is block-tridiagonal, and each step
+eliminates it by block Gaussian elimination along the chain (a forward and a backward
+sweep, `lax.scan`), still one L x L solve per block.
 """
 
 from __future__ import annotations
@@ -21,9 +28,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
 NOISE_FRACTION = 1e-4
 """A step lowering the cost by less than this fraction of the noise variance ends the solve."""
+ROUND_OFF = 1e-26
+"""A cost below this fraction of the first one is exact data fitted to round-off: the solve ends."""
 
 
 @dataclasses.dataclass
@@ -39,35 +47,95 @@ class BlockSolution:
     count: int
 
 
-def _normal_pieces(residual, p, s, data):
-    """Per block: r, J_p^T J_p, J_p^T J_s, J_s^T J_s, J_p^T r, J_s^T r (one block at a time)."""
-    size = p.shape[0]
+def _normal_pieces(residual, p, s, data, linked=False):
+    """Per block: cost, J_p^T J_p, J_p^T J_s, J_s^T J_s, J_p^T r, J_s^T r, and when `linked` the
+    couplings to the next block: E_b = -J_ls^T (L, L), F_b = -J_lp^T (P, L) and the defect
+    c_b = link_b - s_{b+1} (one block at a time)."""
+    size, count = p.shape[0], s.shape[0]
+    following = jnp.concatenate([s[1:], s[-1:]])
+    has_next = jnp.arange(count) < count - 1
 
     def block(args):
-        s_b, data_b = args
+        s_b, data_b, next_b, on = args
         joint = jnp.concatenate([p, s_b])
-        r = residual(p, s_b, data_b)
-        jac = jax.jacfwd(lambda z: residual(z[:size], z[size:], data_b))(joint)
+
+        def rows(z):
+            if not linked:
+                return residual(z[:size], z[size:], data_b)
+            r, ahead = residual(z[:size], z[size:], data_b)
+            return jnp.concatenate([r, jnp.where(on, ahead, 0.0)])
+
+        r = rows(joint)
+        jac = jax.jacfwd(rows)(joint)
+        if linked:
+            r = r.at[r.shape[0] - s_b.shape[0] :].add(-jnp.where(on, next_b, 0.0))
         jp, js = jac[:, :size], jac[:, size:]
-        return r @ r, jp.T @ jp, jp.T @ js, js.T @ js, jp.T @ r, js.T @ r
+        out = (r @ r, jp.T @ jp, jp.T @ js, js.T @ js, jp.T @ r, js.T @ r)
+        if not linked:
+            return out
+        local = s_b.shape[0]
+        lp, ls, c = jp[-local:], js[-local:], r[-local:]
+        return out + (-ls.T, -lp.T, c)
 
-    return jax.lax.map(block, (s, data))
+    return jax.lax.map(block, (s, data, following, has_next))
 
 
-def _costs(residual, p, s, data):
-    return jax.vmap(lambda s_b, d: jnp.sum(residual(p, s_b, d) ** 2))(s, data)
+def _costs(residual, p, s, data, linked=False):
+    if not linked:
+        return jax.vmap(lambda s_b, d: jnp.sum(residual(p, s_b, d) ** 2))(s, data)
+    r, ahead = jax.vmap(lambda s_b, d: residual(p, s_b, d))(s, data)
+    return jnp.sum(r**2, axis=-1).at[:-1].add(jnp.sum((ahead[:-1] - s[1:]) ** 2, axis=-1))
+
+
+def _chain_solve(c, e, rhs):
+    """X with T X = rhs for the block-tridiagonal T (diagonal blocks c (B, L, L), T[b, b+1] =
+    e[b], T[b+1, b] = e[b]^T; e[B-1] unused), rhs (B, L, K): block elimination forwards, then
+    back substitution."""
+
+    def forward(carry, args):
+        d_prev, y_prev, e_prev = carry
+        c_b, rhs_b, e_b = args
+        w = jnp.linalg.solve(d_prev, jnp.concatenate([e_prev, y_prev], axis=-1))
+        local = c_b.shape[-1]
+        d_b = c_b - e_prev.T @ w[:, :local]
+        y_b = rhs_b - e_prev.T @ w[:, local:]
+        return (d_b, y_b, e_b), (d_b, y_b)
+
+    local = c.shape[-1]
+    eye = jnp.eye(local, dtype=c.dtype)
+    start = (eye, jnp.zeros_like(rhs[0]), jnp.zeros_like(e[0]))  # a zero coupling before block 0
+    _, (d, y) = jax.lax.scan(forward, start, (c, rhs, e))
+
+    def backward(x_next, args):
+        d_b, y_b, e_b = args
+        x_b = jnp.linalg.solve(d_b, y_b - e_b @ x_next)
+        return x_b, x_b
+
+    e_last = e.at[-1].set(0.0)
+    _, x = jax.lax.scan(backward, jnp.zeros_like(rhs[0]), (d, y, e_last), reverse=True)
+    return x
 
 
 def _solve(pieces, damping):
-    """The damped arrow system's step (dp, ds) by the Schur complement; and the reduced matrix."""
-    _, a, b, c, gp, gs = pieces
+    """The damped system's step (dp, ds) by the Schur complement; and the reduced matrix."""
+    _, a, b, c, gp, gs = pieces[:6]
+    if len(pieces) > 6:  # linked blocks: block b + 1 also sees the defect of block b's link
+        e, f, defect = pieces[6:]
+        local = c.shape[-1]
+        c = c.at[1:].add(jnp.eye(local, dtype=c.dtype))
+        b = b.at[1:].add(f[:-1])
+        gs = gs.at[1:].add(-defect[:-1])
     corner = a.sum(axis=0)
     size, local = corner.shape[0], c.shape[-1]
     diag_c = jnp.diagonal(c, axis1=-2, axis2=-1)
     floor = 1e-12 * jnp.max(diag_c, axis=-1, keepdims=True) + 1e-300  # unknowns the data barely see
     c_damped = c + jnp.maximum(damping, 1e-12) * jnp.eye(local) * jnp.maximum(diag_c, floor)[..., None, :]
-    c_inv_bt = jnp.linalg.solve(c_damped, jnp.swapaxes(b, -1, -2))  # (B, L, P)
-    c_inv_gs = jnp.linalg.solve(c_damped, gs[..., None])[..., 0]  # (B, L)
+    rhs = jnp.concatenate([jnp.swapaxes(b, -1, -2), gs[..., None]], axis=-1)  # (B, L, P + 1)
+    if len(pieces) > 6:
+        solved = _chain_solve(c_damped, e, rhs)
+    else:
+        solved = jnp.linalg.solve(c_damped, rhs)
+    c_inv_bt, c_inv_gs = solved[..., :size], solved[..., size]
     reduced = corner - jnp.einsum("bpl,blq->pq", b, c_inv_bt)
     damped = reduced + damping * jnp.diag(jnp.maximum(jnp.diag(corner), 1e-300))
     rhs = gp.sum(axis=0) - jnp.einsum("bpl,bl->p", b, c_inv_gs)
@@ -76,25 +144,31 @@ def _solve(pieces, damping):
     return dp, ds, reduced
 
 
-def block_levenberg_marquardt(residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12) -> BlockSolution:
-    """Minimise sum_b |residual(p, s_b, data_b)|^2 from (p (P,), s (B, L)); data: a pytree of
-    (B, ...) arrays. A step is taken only when the cost falls (never worse than given).
+def block_levenberg_marquardt(
+    residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12, linked: bool = False
+) -> BlockSolution:
+    """Minimise sum_b |residual(p, s_b, data_b)|^2 (`linked`: residual returns (r_b, link_b), and
+    the cost adds sum_{b < B-1} |link_b - s_{b+1}|^2) from (p (P,), s (B, L)); data: a pytree of (B, ...) arrays. A step is
+    taken only when the cost falls (never worse than given).
 
     Stops after `iterations` steps, when a step changes p by at most `tolerance` and the
-    cost by at most that fraction, or when a step lowers the cost by less than
+    cost by at most that fraction, when two steps in a row change p and s by at most
+    `tolerance` (round-off), or when a step lowers the cost by less than
     `NOISE_FRACTION` of the noise variance the cost implies (cost / degrees of freedom):
     then p is within about sqrt(NOISE_FRACTION) standard errors of the minimum, and
     further steps (linear convergence when the residuals are noise, not zero) move it
-    by amounts no one can measure."""
-    pieces_fn = jax.jit(lambda p, s, d: _normal_pieces(residual, p, s, d))
-    cost_fn = jax.jit(lambda p, s, d: _costs(residual, p, s, d).sum())
+    by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
+    first value (exact data, fitted to round-off)."""
+    pieces_fn = jax.jit(lambda p, s, d: _normal_pieces(residual, p, s, d, linked))
+    cost_fn = jax.jit(lambda p, s, d: _costs(residual, p, s, d, linked).sum())
     solve = jax.jit(_solve)
     p, s = jnp.asarray(p), jnp.asarray(s)
     pieces = pieces_fn(p, s, data)
-    cost = float(pieces[0].sum())
-    count = int(jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data))).shape[0])
+    cost = initial_cost = float(pieces[0].sum())
+    first = jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data)))
+    count = int((first[0] if linked else first).shape[0])
     freedom = max(count * s.shape[0] - p.size - s.size, 1)
-    history, damping = [], 1e-3
+    history, damping, still = [], 1e-3, False
     for _ in range(iterations):
         accepted = False
         for _ in range(12):
@@ -112,9 +186,13 @@ def block_levenberg_marquardt(residual, p, s, data, iterations: int = 20, tolera
         p, s, cost = p + dp, s + ds, new_cost
         damping = max(damping / 10.0, 1e-12)
         pieces = pieces_fn(p, s, data)
+        step = max(float(jnp.max(jnp.abs(dp), initial=0.0)), float(jnp.max(jnp.abs(ds), initial=0.0)))
+        still, was_still = step <= tolerance, still
         if float(jnp.max(jnp.abs(dp), initial=0.0)) <= tolerance and improvement <= tolerance:
             break
-        if improvement <= tolerance**2 or below_noise:
+        if still and was_still:
+            break
+        if improvement <= tolerance**2 or below_noise or new_cost <= ROUND_OFF * initial_cost:
             break
     _, _, reduced = solve(pieces, 0.0)
     return BlockSolution(np.asarray(p), np.asarray(s), history, cost, np.asarray(reduced), count * s.shape[0])

@@ -25,6 +25,7 @@ class Identifiability:
         names: parameter names of the correlation matrix's rows.
         noise_std: residual standard deviation [m] used for the estimate.
         warnings: plain-language warnings (not identifiable, poorly determined, confounded).
+        objective: what the fitted values minimise, in words (the standard errors are its).
     """
 
     standard_error: dict
@@ -33,6 +34,7 @@ class Identifiability:
     names: tuple
     noise_std: float
     warnings: tuple
+    objective: str = "the misfit over the whole horizon"
 
     def covariance(self) -> dict:
         """{"names": labels, "matrix": (P, P)}: the covariance of the log parameter values
@@ -129,7 +131,9 @@ def start_polish(scene, target, names, values, nuisance, settings):
     steps = _PolishSteps((cost / count, to_values(p)) for cost, p in solution.history)
     steps.final, steps.final_loss = to_values(solution.p), solution.cost / count
     steps.nuisance, steps.reduced = to_nuisance(solution.s), solution.reduced
-    unseen_padding = 3 * len(target.driven) * int(np.sum(target.frame_count - target.lengths)) if target.fit_driven else 0
+    unseen_padding = (
+        3 * len(target.driven) * int(np.sum(target.frame_count - target.lengths)) if target.fit_driven else 0
+    )
     steps.unknowns = int(s0.size) - unseen_padding
     return steps
 
@@ -142,6 +146,8 @@ def identifiability(
     max_parameters: int = 64,
     normal=None,
     nuisance: int = 0,
+    noise_variance: float | None = None,
+    objective: str | None = None,
 ):
     """Gauss-Newton standard errors and correlations of `values` for the full-horizon fit.
 
@@ -153,7 +159,9 @@ def identifiability(
     loss one standard error away disagrees with the quadratic model (a rough loss).
     `normal` replaces J^T J, e.g. by the parameters' block of a fit that also estimated
     `nuisance` other values (start states, eliminated: `start_polish`), so the standard
-    errors include what those unknowns leave undetermined.
+    errors include what those unknowns leave undetermined. A fit that minimised another
+    objective (multiple shooting's segments) passes its own `normal`, `noise_variance` and
+    `objective` (words for the report); the whole horizon's roughness is then not checked.
 
     Example:
         >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
@@ -166,7 +174,7 @@ def identifiability(
     r = np.asarray(residuals(flat))
     jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
     count, dims = getattr(observations, "residual_count", r.shape[0]), flat.shape[0]  # unseen markers carry no data
-    sigma2 = float(r @ r) / max(count - dims - nuisance, 1)
+    sigma2 = float(r @ r) / max(count - dims - nuisance, 1) if noise_variance is None else float(noise_variance)
     normal = jac.T @ jac if normal is None else np.asarray(normal)
     labels = _labels(theta)
     warnings = []
@@ -195,7 +203,8 @@ def identifiability(
     for i, label in enumerate(labels):
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
-    warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
+    if objective is None:
+        warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):
             if abs(correlation[i, j]) > 0.95 and not (dead[i] or dead[j]):
@@ -203,7 +212,8 @@ def identifiability(
                     f"{labels[i]} and {labels[j]} are confounded (correlation {correlation[i, j]:+.3f}): "
                     "the data constrain a combination of them, not each"
                 )
-    return Identifiability(standard_error, relative, correlation, tuple(labels), math.sqrt(sigma2), tuple(warnings))
+    report = Identifiability(standard_error, relative, correlation, tuple(labels), math.sqrt(sigma2), tuple(warnings))
+    return report if objective is None else dataclasses.replace(report, objective=objective)
 
 
 def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:

@@ -16,14 +16,16 @@ from ..errors import InputError
 from ..resources import check_compiled
 from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
+from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
 from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
-from .recording_loss import NUISANCE, start_unknowns, with_fitted_start
-from .recordings import RecordingTarget
+from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
+from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
 from .settings import FitSettings, Stage, plan_stages
+from .shooting import describe, fit_segments, free_shooting_stage
 
 
 def _optimizer(settings: FitSettings):
@@ -163,48 +165,29 @@ def fit_batch(
         if len(reference.names) % jax.device_count() == 0:  # recordings across devices
             data = shard_batch(data)
     start_clock = time.perf_counter() - progress.wall_s
+    segment_fits = None
     while not progress.done:
         stage = stages[progress.stage]
-        if stage.kind == "ensemble":
-            step, init_opt = ensemble_step_function(
-                scene, reference, names, stage, settings, batched_data, progress.theta
-            )
-        else:
-            step, init_opt, _ = step_function(loss_function(scene, reference, names, stage), settings, batched_data)
-        opt_state = init_opt(progress.theta)
-        if progress.optimizer_leaves is not None:
-            structure = jax.tree_util.tree_structure(opt_state)
-            opt_state = jax.tree_util.tree_unflatten(structure, [jnp.asarray(a) for a in progress.optimizer_leaves])
-        step = check_compiled(
-            step,
-            (progress.theta, opt_state, data),
-            f"an iteration of the {stage.kind} stage ({members} start(s), {stage.frames} frames)",
-            "fit",
-            "fit fewer frames, recordings or starts, or fit in segments (strategy shooting)",
-            max_memory,
-        )
-        final_stage = progress.stage == len(stages) - 1
-        while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage, opt_state):
-            values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
-            theta, opt_state, value = step(progress.theta, opt_state, data)
-            progress.last_step = np.max(
-                np.stack(
-                    [np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]
-                ),
-                axis=0,
-            )
-            progress.theta = theta
-            progress.loss.append(np.asarray(value))
-            for n in names:
-                progress.values[n].append(values[n])
-            progress.stage_of_iteration.append(progress.stage)
-            progress.iteration += 1
-            progress.optimizer_leaves = [np.asarray(a) for a in jax.tree_util.tree_leaves(opt_state)]
-            progress.wall_s = time.perf_counter() - start_clock
-            if on_iteration:
-                on_iteration(progress, stages)
-        if _keep_best_of_stage(progress, names, step, opt_state, data):
+        if stage.kind == "free_shooting":  # Levenberg-Marquardt with the segments' states, per member
+            segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
             progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
+        else:
+            _optimiser_stage(
+                scene,
+                reference,
+                names,
+                stage,
+                stages,
+                settings,
+                progress,
+                data,
+                batched_data,
+                members,
+                members_sharded,
+                max_memory,
+                on_iteration,
+                start_clock,
+            )
         progress.stage += 1
         progress.iteration = 0
         progress.optimizer_leaves = None
@@ -213,58 +196,64 @@ def fit_batch(
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)
-    return _results(scene, observations, names, start_values, settings, stages, progress, data, identify)
+    return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
 
 
-def _keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> bool:
-    """End a stage on the best point it has seen on its own loss (per member): the point it
-    stopped at, or an earlier one with a lower loss (Adam's and the ensemble's losses are not
-    monotone). Taken from the history, so a resumed fit chooses as an uninterrupted one.
-    Returns whether any member went back."""
-    done = [i for i, s in enumerate(progress.stage_of_iteration) if s == progress.stage]
-    if not done or set(progress.theta) != set(names):  # a fitted start has no history: polished after
-        return False
-    _, _, end = step(progress.theta, opt_state, data)  # the loss where the stage stopped
-    losses = np.stack([np.asarray(progress.loss[i], dtype=float) for i in done])
-    losses = np.where(np.isfinite(losses), losses, np.inf)
-    best = np.argmin(losses, axis=0)
-    members = np.arange(losses.shape[1])
-    end = np.where(np.isfinite(np.asarray(end, dtype=float)), np.asarray(end, dtype=float), np.inf)
-    back = losses[best, members] < end
-    if not back.any():
-        return False
-    theta = {}
-    for n, value in progress.theta.items():
-        value = np.array(value)
-        if n in names:
-            for m in np.nonzero(back)[0]:
-                value[m] = np.log(progress.values[n][done[best[m]]][m])
-        theta[n] = jnp.asarray(value)
-    progress.theta = theta
-    return True
-
-
-def _best_of_stages(progress: FitProgress, names, value, data):
-    """(theta, loss) per member: the best on the final objective of where each stage began
-    (the first, the start values) and where the last one ended, so a plan never returns a
-    point worse than one it passed through (a whole-horizon stage can walk away from a
-    shooting answer)."""
-    theta = progress.theta
-    loss = np.asarray(value(theta, data), dtype=float)
-    if set(theta) != set(names):  # a fitted start: the start state's history is not kept
-        return theta, loss
-    firsts = sorted({progress.stage_of_iteration.index(s) for s in set(progress.stage_of_iteration)})
-    for i in firsts:
-        candidate = {n: jnp.asarray(np.log(np.asarray(progress.values[n][i]))) for n in names}
-        candidate_loss = np.asarray(value(candidate, data), dtype=float)
-        better = np.isfinite(candidate_loss) & ((candidate_loss < loss) | ~np.isfinite(loss))
-        if better.any():
-            theta = {
-                n: jnp.where(better.reshape((-1,) + (1,) * (np.ndim(theta[n]) - 1)), candidate[n], theta[n])
-                for n in names
-            }
-            loss = np.where(better, candidate_loss, loss)
-    return theta, loss
+def _optimiser_stage(
+    scene,
+    reference,
+    names,
+    stage,
+    stages,
+    settings,
+    progress,
+    data,
+    batched_data,
+    members,
+    members_sharded,
+    max_memory,
+    on_iteration,
+    start_clock,
+):
+    """Run one optimiser stage (direct, shooting from recorded states, ensemble) to convergence."""
+    if stage.kind == "ensemble":
+        step, init_opt = ensemble_step_function(scene, reference, names, stage, settings, batched_data, progress.theta)
+    else:
+        step, init_opt, _ = step_function(loss_function(scene, reference, names, stage), settings, batched_data)
+    opt_state = init_opt(progress.theta)
+    if progress.optimizer_leaves is not None:
+        structure = jax.tree_util.tree_structure(opt_state)
+        opt_state = jax.tree_util.tree_unflatten(structure, [jnp.asarray(a) for a in progress.optimizer_leaves])
+    step = check_compiled(
+        step,
+        (progress.theta, opt_state, data),
+        f"an iteration of the {stage.kind} stage ({members} start(s), {stage.frames} frames)",
+        "fit",
+        "fit fewer frames, recordings or starts, or fit in segments (strategy shooting)",
+        max_memory,
+    )
+    final_stage = progress.stage == len(stages) - 1
+    while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage, opt_state):
+        values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
+        theta, opt_state, value = step(progress.theta, opt_state, data)
+        progress.last_step = np.max(
+            np.stack(
+                [np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]
+            ),
+            axis=0,
+        )
+        progress.theta = theta
+        progress.loss.append(np.asarray(value))
+        for n in names:
+            progress.values[n].append(values[n])
+        progress.stage_of_iteration.append(progress.stage)
+        progress.iteration += 1
+        progress.optimizer_leaves = [np.asarray(a) for a in jax.tree_util.tree_leaves(opt_state)]
+        progress.wall_s = time.perf_counter() - start_clock
+        if on_iteration:
+            on_iteration(progress, stages)
+    if keep_best_of_stage(progress, names, step, opt_state, data):
+        progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
 
 
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state) -> bool:
@@ -287,11 +276,27 @@ def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, 
     return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))
 
 
-def _results(scene, observations, names, start_values, settings, stages, progress, data, identify):
+def _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits):
     batched_data = len(observations) > 1
-    loss = loss_function(scene, observations[0], names, stages[-1])
-    _, _, value = step_function(loss, settings, batched_data)
-    progress.theta, final_loss = _best_of_stages(progress, names, value, data)
+    if stages[-1].kind == "free_shooting":  # each accepted step went downhill on that objective
+        if segment_fits is None:  # resumed after the stage: settle the states at the answer again
+            segment_fits = [
+                fit_segments(
+                    scene,
+                    observations[m if batched_data else 0],
+                    names,
+                    {n: np.exp(np.asarray(progress.theta[n][m], dtype=float)) for n in names},
+                    stages[-1].frames,
+                    settings.iterations,
+                    settings.step_tolerance,
+                )
+                for m in range(len(start_values))
+            ]
+        final_loss = np.array([f.loss for f in segment_fits])
+    else:
+        loss = loss_function(scene, observations[0], names, stages[-1])
+        _, _, value = step_function(loss, settings, batched_data)
+        progress.theta, final_loss = best_of_stages(progress, names, value, data)
     results = []
     polish_stage = Stage("gauss_newton", observations[0].frame_count - 1)
     for member, start in enumerate(start_values):
@@ -301,12 +306,15 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         value_history = {n: [v[member] for v in progress.values[n]] for n in names}
         stage_of_iteration = list(progress.stage_of_iteration)
         polish_start = time.perf_counter()
+        estimated = None
         if "start" in progress.theta:  # fitted start states: always polished with them (least squares)
             nuisance = {k: np.asarray(progress.theta[k][member]) for k in NUISANCE if k in progress.theta}
             steps = start_polish(scene, obs, names, final, nuisance, settings) if obs.loss == "mse" else []
             obs = with_fitted_start(obs, steps.nuisance if steps else nuisance)  # reported with them held
+            estimated = estimated_inputs(obs, "driven" in nuisance)
         else:
-            steps = gauss_newton_polish(scene, obs, names, final, settings) if settings.polish else []
+            whole = settings.polish and stages[-1].kind != "free_shooting"  # never past the segments
+            steps = gauss_newton_polish(scene, obs, names, final, settings) if whole else []
         for loss_before, values_before in steps:
             history.append(loss_before)
             for n in names:
@@ -318,8 +326,20 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         else:
             final_loss_member = final_loss[member]
         reduced = getattr(steps, "reduced", None)  # start states estimated too: their uncertainty counts
-        unknowns = steps.unknowns if reduced is not None else 0
-        ident = identifiability(scene, obs, names, final, normal=reduced, nuisance=unknowns) if identify else None
+        shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0}
+        if segment_fits is not None and stages[-1].kind == "free_shooting":  # standard errors of that objective
+            fit = segment_fits[member]
+            dof = max(fit.count - len(fit.reduced) - fit.unknowns, 1)
+            shooting = dict(
+                normal=fit.reduced,
+                nuisance=fit.unknowns,
+                noise_variance=fit.loss * fit.count / dof,
+                objective=describe(fit),
+            )
+            estimated = {"segment_x": np.asarray(fit.starts.x), "segment_v": np.asarray(fit.starts.v)}
+        ident = identifiability(scene, obs, names, final, **shooting) if identify else None
+        if ident and isinstance(obs, RecordingTarget) and not (estimated and "driven" in estimated):
+            ident = warn_of_noisy_driven_paths(obs, ident)
         results.append(
             FitResult(
                 names=names,
@@ -334,6 +354,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
                 identifiability=ident,
                 truth={n: obs.truth[n] for n in names if n in obs.truth} if obs.truth else None,
                 truth_label=getattr(obs, "truth_label", "true"),
+                estimated=estimated,
             )
         )
     return results

@@ -74,6 +74,14 @@ def with_fitted_start(target, nuisance: dict):
     )
 
 
+def estimated_inputs(target, driven: bool) -> dict:
+    """A fitted target's (`with_fitted_start`) start states and, if `driven`, driven paths, in m and m/s."""
+    out = {"x0": np.asarray(target.states_x[:, 0]), "v0": np.asarray(target.states_v[:, 0])}
+    if driven:
+        out["driven"] = np.asarray(target.filled[:, :, carriers(target), :3])
+    return out
+
+
 def target_data(target: RecordingTarget) -> dict:
     seen = np.isfinite(target.x).all(axis=-1)
     return {

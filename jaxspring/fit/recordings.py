@@ -297,3 +297,31 @@ def spread(rest: np.ndarray, markers: np.ndarray, seen: np.ndarray) -> np.ndarra
     out = moved + weights @ residual
     out[markers] = seen
     return out
+
+
+def driven_noise(target: RecordingTarget) -> float:
+    """The driven markers' noise [m] (RMS per coordinate), estimated from their seen frames'
+    fourth differences in time, where white noise of variance s^2 gives variance 70 s^2 and a
+    path moving smoothly at the frame rate nearly nothing. 0 without driven particles."""
+    if len(target.driven) == 0:
+        return 0.0
+    carried = [int(np.nonzero(target.markers == p)[0][0]) for p in target.driven]
+    x = target.x[:, :, carried]  # (R, F, D, 3), NaN where unseen
+    fourth = x[:, 4:] - 4 * x[:, 3:-1] + 6 * x[:, 2:-2] - 4 * x[:, 1:-3] + x[:, :-4]
+    fourth = fourth[np.isfinite(fourth)]
+    return float(np.sqrt(np.mean(fourth**2) / 70.0)) if fourth.size else 0.0
+
+
+def warn_of_noisy_driven_paths(target: RecordingTarget, ident):
+    """The report with a warning when the driven markers are about as noisy as the fit's
+    residuals: held as recorded, their noise pushes the object in every simulation and the
+    parameters are fitted to explain it, beyond what the standard errors say."""
+    noise = driven_noise(target)
+    if noise < 0.3 * ident.noise_std:
+        return ident
+    warning = (
+        f"the driven markers are noisy (~{noise * 1e3:.2g} mm, fourth differences) and their paths are held as "
+        "recorded: that noise moves the object in the fit, biasing the values beyond these standard errors; "
+        "fit the paths too (fit_driven)"
+    )
+    return dataclasses.replace(ident, warnings=ident.warnings + (warning,))

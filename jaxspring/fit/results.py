@@ -55,6 +55,11 @@ class FitResult:
         identifiability: Gauss-Newton standard errors and correlations (None if skipped).
         truth: true values when known (synthetic targets), or a target file's own values.
         truth_label: "true", or "file" when `truth` holds a target file's values.
+        estimated: what a recording fit estimated besides the parameters (None otherwise):
+            "x0", "v0" the recordings' start states (R, N, 3) with `fit_start`, and
+            "driven" the driven particles' paths (R, F, D, 3) at the frames from the
+            start frame on with `fit_driven` [m, m/s]; after multiple shooting with free
+            states, "segment_x", "segment_v": the segments' fitted start states (S, N, 3).
     """
 
     names: tuple
@@ -69,6 +74,7 @@ class FitResult:
     identifiability: Identifiability | None
     truth: dict | None = None
     truth_label: str = "true"
+    estimated: dict | None = None
 
     @property
     def final_loss(self) -> float:
@@ -100,6 +106,7 @@ class FitResult:
             rows.append(f"{n:<{width}}{_short(self.initial[n]):>12}{_short(value):>14}{true:>12}{rel:>12}{se:>12}")
         rows.append(f"final loss {self.final_loss:.4g} m^2 after {self.iterations} iterations in {self.wall_s:.2f} s")
         if ident:
+            rows.append(f"minimised: {ident.objective}")
             rows += [f"warning: {w}" for w in ident.warnings]
         return "\n".join(rows)
 

@@ -14,7 +14,7 @@ from .observations import Observations
 
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
 OPTIMIZERS = ("lbfgs", "adam")
-STRATEGIES = ("auto", "direct", "curriculum", "shooting")
+STRATEGIES = ("auto", "direct", "curriculum", "shooting", "free_shooting")
 ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
 ENSEMBLE_MAX_PARAMETERS = 8  # scalar values; a Gaussian cloud needs several rollouts per dimension
 
@@ -30,7 +30,11 @@ class FitSettings:
         clip: Adam's gradient clipping (global norm).
         strategy: "direct" (whole horizon at once), "curriculum" (horizons 1/8, 1/4,
             1/2, 1 of the target), "shooting" (segments of `segment_frames` frames from
-            recorded states, then the whole horizon), or "auto": direct up to
+            recorded states, then the whole horizon), "free_shooting" (segments of
+            `segment_frames` frames, each from a start state fitted with the parameters
+            by Levenberg-Marquardt under a continuity penalty: positions alone suffice, and
+            no simulation runs longer than a segment, so the answer minimises the
+            segments' misfit, never a whole chaotic horizon's; `fit.shooting`), or "auto": direct up to
             `long_horizon_steps` steps without ground contact; beyond that, or when the
             target touches the ground, shooting when full states were recorded, else
             curriculum.
@@ -107,7 +111,8 @@ class Stage:
     """One stage of a fit over `frames` frames.
 
     `kind`: "direct" (the optimiser on the loss), "shooting" (segments of `frames` frames
-    from recorded states) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
+    from recorded states), "free_shooting" (segments of `frames` frames from fitted start
+    states, Levenberg-Marquardt) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
     """
 
     kind: str
@@ -131,13 +136,13 @@ def plan_stages(
             strategy = "direct"
         else:
             strategy = "shooting" if observations.full else "curriculum"
-    if strategy == "shooting":
-        if not (observations.full or getattr(observations, "shootable", False)):
+    if strategy == "free_shooting" or (strategy == "shooting" and not _shootable(observations)):
+        if getattr(observations, "shootable", False):
             raise InputError(
-                "strategy",
-                "multiple shooting needs full recorded states of every particle",
-                "use curriculum, or observe all particles",
+                "strategy", "free_shooting fits target files, not recordings", 'fit recordings with "direct"'
             )
+        return [Stage("free_shooting", min(settings.segment_frames, total))]
+    if strategy == "shooting":  # from recorded states
         stages = [Stage("shooting", min(settings.segment_frames, total)), Stage("direct", total)]
     elif strategy == "curriculum":
         horizons = sorted({max(2, min(total, math.ceil(total * f))) for f in (0.125, 0.25, 0.5, 1.0)})
@@ -156,6 +161,10 @@ def plan_stages(
             )
         stages[-1] = Stage("ensemble", total)
     return stages
+
+
+def _shootable(observations) -> bool:
+    return bool(observations.full or getattr(observations, "shootable", False))
 
 
 def _touches_ground(scene: Scene | None, observations: Observations) -> bool:

@@ -1,0 +1,59 @@
+"""Never worse than given: each stage ends on the best point it has seen, a plan on the best of its stages."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from .results import FitProgress
+
+
+def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> bool:
+    """End a stage on the best point it has seen on its own loss (per member): the point it
+    stopped at, or an earlier one with a lower loss (Adam's and the ensemble's losses are not
+    monotone). Taken from the history, so a resumed fit chooses as an uninterrupted one.
+    Returns whether any member went back."""
+    done = [i for i, s in enumerate(progress.stage_of_iteration) if s == progress.stage]
+    if not done or set(progress.theta) != set(names):  # a fitted start has no history: polished after
+        return False
+    _, _, end = step(progress.theta, opt_state, data)  # the loss where the stage stopped
+    losses = np.stack([np.asarray(progress.loss[i], dtype=float) for i in done])
+    losses = np.where(np.isfinite(losses), losses, np.inf)
+    best = np.argmin(losses, axis=0)
+    members = np.arange(losses.shape[1])
+    end = np.where(np.isfinite(np.asarray(end, dtype=float)), np.asarray(end, dtype=float), np.inf)
+    back = losses[best, members] < end
+    if not back.any():
+        return False
+    theta = {}
+    for n, value in progress.theta.items():
+        value = np.array(value)
+        if n in names:
+            for m in np.nonzero(back)[0]:
+                value[m] = np.log(progress.values[n][done[best[m]]][m])
+        theta[n] = jnp.asarray(value)
+    progress.theta = theta
+    return True
+
+
+def best_of_stages(progress: FitProgress, names, value, data):
+    """(theta, loss) per member: the best on the final objective of where each stage began
+    (the first, the start values) and where the last one ended, so a plan never returns a
+    point worse than one it passed through (a whole-horizon stage can walk away from a
+    shooting answer)."""
+    theta = progress.theta
+    loss = np.asarray(value(theta, data), dtype=float)
+    if set(theta) != set(names):  # a fitted start: the start state's history is not kept
+        return theta, loss
+    firsts = sorted({progress.stage_of_iteration.index(s) for s in set(progress.stage_of_iteration)})
+    for i in firsts:
+        candidate = {n: jnp.asarray(np.log(np.asarray(progress.values[n][i]))) for n in names}
+        candidate_loss = np.asarray(value(candidate, data), dtype=float)
+        better = np.isfinite(candidate_loss) & ((candidate_loss < loss) | ~np.isfinite(loss))
+        if better.any():
+            theta = {
+                n: jnp.where(better.reshape((-1,) + (1,) * (np.ndim(theta[n]) - 1)), candidate[n], theta[n])
+                for n in names
+            }
+            loss = np.where(better, candidate_loss, loss)
+    return theta, loss

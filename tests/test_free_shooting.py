@@ -1,0 +1,79 @@
+"""Multiple shooting with the segments' start states fitted: positions only, against the truth;
+continuity checked by simulating each fitted segment again; the objective's gradient
+against finite differences."""
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxspring as js
+from jaxspring.fit.block_lm import _costs
+from jaxspring.fit.shooting import shooting_problem
+
+jax.config.update("jax_enable_x64", True)
+SCENES = Path(__file__).parents[1] / "scenes"
+CHAIN_TRUTH = {"ks": 1000.0, "kd": 5.0, "cd": 0.05}
+
+
+def positions_only(scene, truth, steps, save_every):
+    obs = js.synthetic_observations(scene, truth, steps=steps, save_every=save_every)
+    return dataclasses.replace(obs, states=None)  # no recorded states: velocities unknown
+
+
+@pytest.fixture(scope="module")
+def chain():
+    return js.load_scene(SCENES / "chain.toml")
+
+
+def test_positions_only_multiple_shooting_recovers_a_2s_chain(chain):
+    obs = positions_only(chain, CHAIN_TRUTH, 2000, 20)
+    init = {"ks": 400.0, "kd": 12.0, "cd": 0.15}  # 2.5 to 3 times away
+    result = js.fit(chain, obs, list(CHAIN_TRUTH), init=init, strategy="free_shooting", segment_frames=10)
+    for n, true in CHAIN_TRUTH.items():
+        assert abs(float(result.final[n]) / true - 1) < 1e-8, (n, result.final[n])
+    assert result.identifiability.objective.startswith("multiple shooting: the misfit of 10 segments of 10 frames")
+    assert "minimised: multiple shooting" in result.table()
+    # continuity: every fitted segment, simulated again from its fitted start, ends on the next one's start
+    x, v = result.estimated["segment_x"], result.estimated["segment_v"]
+    params = chain.model.params_with(chain.params, result.final)
+    for j in range(len(x) - 1):
+        end = js.final_state(chain.model, params, js.State(x=jnp.asarray(x[j]), v=jnp.asarray(v[j])), steps=200)
+        np.testing.assert_allclose(end.x, x[j + 1], atol=1e-10)
+        np.testing.assert_allclose(end.v, v[j + 1], atol=1e-8)
+    np.testing.assert_allclose(x[:, obs.particles], obs.x[::10][: len(x)], atol=1e-10)  # and on the observations
+
+
+def test_positions_only_multiple_shooting_recovers_a_jelly_before_touchdown():
+    """A 3 x 3 x 3 jelly spinning as it falls for 0.5 s (all springs of the jelly scene)."""
+    data = tomllib.loads((SCENES / "jelly.toml").read_text())
+    data["lattice"]["shape"] = [3, 3, 3]
+    scene = js.scene_from_dict(data)
+    truth = {"ks": 250.0, "kd": 0.05}
+    obs = positions_only(scene, truth, 500, 10)
+    result = js.fit(
+        scene, obs, ["ks", "kd"], init={"ks": 600.0, "kd": 0.02}, strategy="free_shooting", segment_frames=10
+    )
+    for n, true in truth.items():
+        assert abs(float(result.final[n]) / true - 1) < 1e-8, (n, result.final[n])
+
+
+def test_the_shooting_objective_gradient_matches_finite_differences(chain):
+    obs = positions_only(chain, CHAIN_TRUTH, 300, 20)
+    p0, _, s0, residual, data, _, _ = shooting_problem(chain, obs, list(CHAIN_TRUTH), CHAIN_TRUTH, 5)
+    rng = np.random.default_rng(0)
+    p = jnp.asarray(p0) + 0.1 * rng.normal(size=p0.shape)
+    s = jnp.asarray(1e-2 * rng.normal(size=s0.shape))
+    cost = jax.jit(lambda p, s: _costs(residual, p, s, data, linked=True).sum())
+    grad_p, grad_s = jax.grad(cost, argnums=(0, 1))(p, s)
+    h = 1e-6
+    for i in range(p.shape[0]):
+        step = jnp.zeros_like(p).at[i].set(h)
+        np.testing.assert_allclose(grad_p[i], (cost(p + step, s) - cost(p - step, s)) / (2 * h), rtol=1e-4)
+    for index in [(0, 0), (0, 40), (1, 7), (2, s.shape[1] - 1)]:  # a state's gap to the next segment counts too
+        step = jnp.zeros_like(s).at[index].set(h)
+        np.testing.assert_allclose(grad_s[index], (cost(p, s + step) - cost(p, s - step)) / (2 * h), rtol=1e-4)
