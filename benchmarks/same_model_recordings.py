@@ -63,8 +63,8 @@ def main() -> None:
             se = np.array([s[n] for _, s, _ in runs])
             within = " / ".join(f"{np.mean(np.abs(error) <= k * se):.0%}" for k in (1, 2, 3))
             print(
-                f"| {label} | {n} | {np.median(np.abs(error)):.1%} | {error[np.argmax(np.abs(error))]:+.1%} "
-                f"| {np.median(se):.1%} | {within} | {wall:.0f} s |",
+                f"| {label} | {n} | {np.median(np.abs(error)):.2%} | {error[np.argmax(np.abs(error))]:+.2%} "
+                f"| {np.median(se):.2%} | {within} | {wall:.0f} s |",
                 flush=True,
             )
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring.fit.block_lm import _costs
+from jaxspring.fit.block_lm import _costs, _normal_pieces
 from jaxspring.fit.shooting import shooting_problem
 
 jax.config.update("jax_enable_x64", True)
@@ -77,3 +77,9 @@ def test_the_shooting_objective_gradient_matches_finite_differences(chain):
     for index in [(0, 0), (0, 40), (1, 7), (2, s.shape[1] - 1)]:  # a state's gap to the next segment counts too
         step = jnp.zeros_like(s).at[index].set(h)
         np.testing.assert_allclose(grad_s[index], (cost(p, s + step) - cost(p, s - step)) / (2 * h), rtol=1e-4)
+    # the Levenberg-Marquardt normal equations' gradient, assembled from the blocks and their links
+    pieces = _normal_pieces(residual, p, s, data, linked=True)
+    gp, gs, defect = pieces[4].sum(axis=0), pieces[5], pieces[8]
+    gs = gs.at[1:].add(-defect[:-1])  # block b + 1's state also sits in block b's continuity gap
+    np.testing.assert_allclose(2 * gp, grad_p, rtol=1e-9)
+    np.testing.assert_allclose(2 * gs, grad_s, rtol=1e-9, atol=1e-12 * float(jnp.abs(grad_s).max()))

@@ -24,7 +24,9 @@ def add_parser(sub):
         "--optimizer", choices=["lbfgs", "adam"], help="optimizer (default: the experiment's, else lbfgs)"
     )
     parser.add_argument(
-        "--strategy", choices=["auto", "direct", "curriculum", "shooting"], help="long-horizon strategy"
+        "--strategy",
+        choices=["auto", "direct", "curriculum", "shooting", "free_shooting"],
+        help="long-horizon strategy",
     )
     parser.add_argument(
         "--ensemble",

@@ -17,7 +17,7 @@ Linked blocks (multiple shooting: block b's simulated end predicts block b + 1's
 b < B - 1, so neighbouring blocks
 couple: the blocks' part of the normal matrix is block-tridiagonal, and each step
 eliminates it by block Gaussian elimination along the chain (a forward and a backward
-sweep, `lax.scan`), still one L x L solve per block.
+sweep, `lax.scan`), still two L x L solves per block.
 """
 
 from __future__ import annotations
@@ -167,7 +167,8 @@ def block_levenberg_marquardt(
     cost = initial_cost = float(pieces[0].sum())
     first = jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data)))
     count = int((first[0] if linked else first).shape[0])
-    freedom = max(count * s.shape[0] - p.size - s.size, 1)
+    rows = count * s.shape[0] + (s.shape[0] - 1) * s.shape[1] * linked  # with the links' rows
+    freedom = max(rows - p.size - s.size, 1)
     history, damping, still = [], 1e-3, False
     for _ in range(iterations):
         accepted = False

@@ -292,6 +292,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
                 )
                 for m in range(len(start_values))
             ]
+            progress.theta = {n: jnp.stack([jnp.log(jnp.asarray(f.values[n])) for f in segment_fits]) for n in names}
         final_loss = np.array([f.loss for f in segment_fits])
     else:
         loss = loss_function(scene, observations[0], names, stages[-1])
@@ -329,7 +330,8 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0}
         if segment_fits is not None and stages[-1].kind == "free_shooting":  # standard errors of that objective
             fit = segment_fits[member]
-            dof = max(fit.count - len(fit.reduced) - fit.unknowns, 1)
+            links = fit.unknowns - fit.unknowns // len(fit.starts.x)  # (S - 1) L continuity rows
+            dof = max(fit.count + links - len(fit.reduced) - fit.unknowns, 1)
             shooting = dict(
                 normal=fit.reduced,
                 nuisance=fit.unknowns,

@@ -136,7 +136,13 @@ def plan_stages(
             strategy = "direct"
         else:
             strategy = "shooting" if observations.full else "curriculum"
-    if strategy == "free_shooting" or (strategy == "shooting" and not _shootable(observations)):
+    if strategy == "shooting" and not _shootable(observations):
+        raise InputError(
+            "strategy",
+            "multiple shooting from recorded states needs full recorded states of every particle",
+            "use free_shooting (fits the segments' states from positions) or curriculum",
+        )
+    if strategy == "free_shooting":
         if getattr(observations, "shootable", False):
             raise InputError(
                 "strategy", "free_shooting fits target files, not recordings", 'fit recordings with "direct"'

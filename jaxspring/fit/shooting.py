@@ -66,7 +66,7 @@ class SegmentFit:
 def segment_guesses(scene, observations: Observations, segment_frames: int) -> State:
     """Start states (S, N, 3) of the segments from the observations: the recorded states when
     there are any; else the observed particles' positions, the others placed by the start
-    rule (`recordings.spread`) from the scene's initial positions, and velocities by central
+    rule (`recordings.spread`) from the target's frame-0 positions, and velocities by central
     differences of those positions (one-sided at the ends)."""
     frames = observations.frame_count - 1
     firsts = np.arange(0, frames, segment_frames)
