@@ -165,6 +165,20 @@ def fit_batch(
         if len(reference.names) % jax.device_count() == 0:  # recordings across devices
             data = shard_batch(data)
     start_clock = time.perf_counter() - progress.wall_s
+    run = _Run(
+        scene,
+        reference,
+        names,
+        stages,
+        settings,
+        data,
+        batched_data,
+        members,
+        members_sharded,
+        max_memory,
+        on_iteration,
+        start_clock,
+    )
     segment_fits = None
     while not progress.done:
         stage = stages[progress.stage]
@@ -172,22 +186,7 @@ def fit_batch(
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
             progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
         else:
-            _optimiser_stage(
-                scene,
-                reference,
-                names,
-                stage,
-                stages,
-                settings,
-                progress,
-                data,
-                batched_data,
-                members,
-                members_sharded,
-                max_memory,
-                on_iteration,
-                start_clock,
-            )
+            _optimiser_stage(run, stage, progress)
         progress.stage += 1
         progress.iteration = 0
         progress.optimizer_leaves = None
@@ -199,23 +198,36 @@ def fit_batch(
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
 
 
-def _optimiser_stage(
-    scene,
-    reference,
-    names,
-    stage,
-    stages,
-    settings,
-    progress,
-    data,
-    batched_data,
-    members,
-    members_sharded,
-    max_memory,
-    on_iteration,
-    start_clock,
-):
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What every stage of one `fit_batch` call shares."""
+
+    scene: Scene
+    reference: Observations
+    names: tuple
+    stages: list
+    settings: FitSettings
+    data: dict
+    batched_data: bool
+    members: int
+    members_sharded: bool
+    max_memory: int | None
+    on_iteration: Callable | None
+    start_clock: float
+
+
+def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     """Run one optimiser stage (direct, shooting from recorded states, ensemble) to convergence."""
+    scene, reference, names, stages, settings, data = (
+        run.scene,
+        run.reference,
+        run.names,
+        run.stages,
+        run.settings,
+        run.data,
+    )
+    batched_data, members, members_sharded = run.batched_data, run.members, run.members_sharded
+    max_memory, on_iteration, start_clock = run.max_memory, run.on_iteration, run.start_clock
     if stage.kind == "ensemble":
         step, init_opt = ensemble_step_function(scene, reference, names, stage, settings, batched_data, progress.theta)
     else:
