@@ -3,13 +3,18 @@
 For each case, draws truths (log-uniform in a range around the scene's values) and starts
 (each value 1/3 to 3 times its truth, log-uniform), simulates a positions-only target (no
 recorded velocities), with 0 or 1% noise, and fits it. A draw succeeds when every value
-is within 2% of the truth (no noise) or within 3 reported standard errors (noise).
-Prints the success rate and the median fit time per case.
+is within 2% of the truth (no noise) or within 3 reported standard errors (noise; the
+standard errors are of the log values, so the log of fitted / true is compared).
+Prints the success rate, the median fit time and the worst draw per case.
 
-    python benchmarks/success_map.py [--draws 10] [--cases chain_10s,undamped_chain_10s]
+    python benchmarks/success_map.py [--draws 10] [--cases chain_10s,small_jelly_1s] [--noise 0,0.01]
 
-Cases with ground contact (the jelly) are not in the map yet: free shooting stalls on
-the contact's non-smooth motion (docs/fitting.md, strategies).
+Cases: the chain over 10 s (500 frames, 50 segments), the same without spring damping,
+and `small_jelly_1s`: a 3 x 3 x 3 jelly with the jelly scene's springs, ground and spin,
+dropped from 0.3 m, landing and bouncing over 1 s (a frame every 10 steps). The jelly
+scene itself (7 x 6 x 5) is not in the map: one 10-frame segment's Jacobian (1,262
+state columns) costs ~35 s per Levenberg-Marquardt step on 2 cores, beyond the
+3-minute target.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+import tomllib
 from pathlib import Path
 
 import jax
@@ -30,13 +36,22 @@ ROOT = Path(__file__).parents[1]
 CASES = {  # scene, steps, save_every, {name: (low, high)} truths drawn in
     "chain_10s": ("chain.toml", 10000, 20, {"ks": (500.0, 2000.0), "kd": (2.0, 10.0), "cd": (0.02, 0.1)}),
     "undamped_chain_10s": ("chain.toml", 10000, 20, {"ks": (500.0, 2000.0), "cd": (0.02, 0.1)}),
+    "small_jelly_1s": ("jelly.toml", 1000, 10, {"ks": (150.0, 400.0), "kd": (0.02, 0.1)}),
 }
+
+
+def load(file: str):
+    """The case's scene: the jelly shrunk to 3 x 3 x 3 and lowered to 0.3 m."""
+    data = tomllib.loads((ROOT / "scenes" / file).read_text())
+    if file == "jelly.toml":
+        data["lattice"]["shape"], data["lattice"]["origin"] = [3, 3, 3], [0.0, 0.3, 0.0]
+    return js.scene_from_dict(data)
 
 
 def draw(case: str, seed: int, noise: float):
     file, steps, every, ranges = CASES[case]
     rng = np.random.default_rng(seed)
-    scene = js.load_scene(ROOT / "scenes" / file)
+    scene = load(file)
     if case.startswith("undamped"):
         scene = scene.with_params(kd=0.0)
     truth = {n: float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) for n, (lo, hi) in ranges.items()}
@@ -50,6 +65,7 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=10)
     parser.add_argument("--cases", default=",".join(CASES))
     parser.add_argument("--noise", default="0,0.01")
+    parser.add_argument("--verbose", action="store_true", help="print every draw")
     args = parser.parse_args()
     print("| case | noise | success | median fit | worst |")
     print("|---|---|---|---|---|")
@@ -61,11 +77,16 @@ def main() -> None:
                 clock = time.perf_counter()
                 result = js.fit(scene, obs, list(truth), init=start, strategy="free_shooting", segment_frames=10)
                 walls.append(time.perf_counter() - clock)
-                error = {n: abs(float(result.final[n]) / truth[n] - 1) for n in truth}
-                se = result.identifiability.relative_standard_error
-                # no noise: within 2%; noise: within 3 standard errors
-                score = max(e / (0.02 if noise == 0 else 3 * float(se[n])) for n, e in error.items())
+                error = {n: float(result.final[n]) / truth[n] - 1 for n in truth}
+                se = result.identifiability.relative_standard_error  # of the log values
+                # no noise: within 2%; noise: log error within 3 standard errors
+                score = max(
+                    abs(e) / 0.02 if noise == 0 else abs(np.log1p(e)) / (3 * float(se[n])) for n, e in error.items()
+                )
                 wins += score <= 1.0
+                if args.verbose:
+                    values = ", ".join(f"{n} {e:+.2%} (s.e. {float(se[n]):.2%})" for n, e in error.items())
+                    print(f"  seed {seed}: {values}, {walls[-1]:.0f} s, {score:.2g} of the bound", flush=True)
                 worst = max(worst, score)
             print(
                 f"| {case} | {noise:.0%} | {wins}/{args.draws} | {np.median(walls):.0f} s | {worst:.2g} of the bound |",

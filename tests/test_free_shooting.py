@@ -13,7 +13,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring.fit.block_lm import _costs, _normal_pieces
-from jaxspring.fit.shooting import shooting_problem
+from jaxspring.fit.shooting import CONTINUITY_WEIGHTS, shooting_problem
 
 jax.config.update("jax_enable_x64", True)
 SCENES = Path(__file__).parents[1] / "scenes"
@@ -48,6 +48,24 @@ def test_positions_only_multiple_shooting_recovers_a_2s_chain(chain):
     np.testing.assert_allclose(x[:, obs.particles], obs.x[::10][: len(x)], atol=1e-10)  # and on the observations
 
 
+def test_with_noise_the_segment_length_does_not_change_the_answer(chain):
+    """1% noise, positions only: with continuity raised to a constraint the answer is the
+    maximum-likelihood fit of one continuous motion, whatever the segments (a fixed penalty's
+    answer moves with them: its states take up noise as gaps), and within 3 standard errors."""
+    obs = dataclasses.replace(
+        js.synthetic_observations(chain, CHAIN_TRUTH, 1000, 20, noise_relative=0.01, seed=1), states=None
+    )
+    init = {"ks": 400.0, "kd": 12.0, "cd": 0.15}
+    short, long = (
+        js.fit(chain, obs, list(CHAIN_TRUTH), init=init, strategy="free_shooting", segment_frames=k) for k in (5, 25)
+    )
+    for n, true in CHAIN_TRUTH.items():
+        se = float(short.identifiability.relative_standard_error[n])
+        assert abs(float(long.identifiability.relative_standard_error[n]) / se - 1) < 0.01
+        assert abs(np.log(float(short.final[n]) / float(long.final[n]))) < 0.01 * se, n
+        assert abs(np.log(float(short.final[n]) / true)) < 3 * se, n
+
+
 def test_multiple_shooting_recovers_a_chain_seen_at_a_third_of_its_particles(chain):
     """6 of 19 free particles observed, positions only: the others' segment states are guessed
     by the start rule and fitted like the rest."""
@@ -61,23 +79,35 @@ def test_multiple_shooting_recovers_a_chain_seen_at_a_third_of_its_particles(cha
     assert all(float(se[n]) < 1e-6 for n in CHAIN_TRUTH)  # exact data: the residual variance is round-off
 
 
-def test_positions_only_multiple_shooting_recovers_a_jelly_before_touchdown():
-    """A 3 x 3 x 3 jelly spinning as it falls for 0.5 s (all springs of the jelly scene)."""
+def test_positions_only_multiple_shooting_recovers_a_jelly_through_its_impacts():
+    """A 3 x 3 x 3 jelly (all springs of the jelly scene) spinning as it falls 0.3 m, lands and
+    bounces, for 1 s: the segments that touch the ground are left out (contact switches on at
+    a discrete step), the flight before the impact and the bounce after it are fitted."""
     data = tomllib.loads((SCENES / "jelly.toml").read_text())
-    data["lattice"]["shape"] = [3, 3, 3]
+    data["lattice"]["shape"], data["lattice"]["origin"] = [3, 3, 3], [0.0, 0.3, 0.0]
     scene = js.scene_from_dict(data)
     truth = {"ks": 250.0, "kd": 0.05}
-    obs = positions_only(scene, truth, 500, 10)
+    recorded = js.synthetic_observations(scene, truth, steps=1000, save_every=10)
+    obs = dataclasses.replace(recorded, states=None)
     result = js.fit(
         scene, obs, ["ks", "kd"], init={"ks": 600.0, "kd": 0.02}, strategy="free_shooting", segment_frames=10
     )
     for n, true in truth.items():
         assert abs(float(result.final[n]) / true - 1) < 1e-8, (n, result.final[n])
+    firsts = result.estimated["segment_frame"]
+    np.testing.assert_array_equal(firsts, [0, 60])  # before the landing, and in the air after the bounce
+    for f in firsts:  # those segments are clear of the ground in the recorded motion, all others are not
+        assert recorded.states.x[f : f + 11, :, 1].min() > 0.0
+    lowest = [recorded.states.x[f : f + 11, :, 1].min() for f in range(0, 100, 10) if f not in firsts]
+    assert max(lowest) < 0.05
+    assert "8 touching the ground left out" in result.identifiability.objective
+    np.testing.assert_allclose(result.estimated["segment_x"][:, obs.particles], obs.x[firsts], atol=1e-10)
 
 
 def test_the_shooting_objective_gradient_matches_finite_differences(chain):
     obs = positions_only(chain, CHAIN_TRUTH, 300, 20)
-    p0, _, s0, residual, data, _, _ = shooting_problem(chain, obs, list(CHAIN_TRUTH), CHAIN_TRUTH, 5)
+    problem = shooting_problem(chain, obs, list(CHAIN_TRUTH), CHAIN_TRUTH, 5, CONTINUITY_WEIGHTS[0])
+    p0, s0, residual, data = problem.p0, problem.s0, problem.residual, problem.data
     rng = np.random.default_rng(0)
     p = jnp.asarray(p0) + 0.1 * rng.normal(size=p0.shape)
     s = jnp.asarray(1e-2 * rng.normal(size=s0.shape))
@@ -96,3 +126,12 @@ def test_the_shooting_objective_gradient_matches_finite_differences(chain):
     gs = gs.at[1:].add(-defect[:-1])  # block b + 1's state also sits in block b's continuity gap
     np.testing.assert_allclose(2 * gp, grad_p, rtol=1e-9)
     np.testing.assert_allclose(2 * gs, grad_s, rtol=1e-9, atol=1e-12 * float(jnp.abs(grad_s).max()))
+
+
+def test_a_target_always_on_the_ground_is_refused_with_the_way_out():
+    data = tomllib.loads((SCENES / "jelly.toml").read_text())
+    data["lattice"]["shape"], data["lattice"]["origin"] = [2, 2, 2], [0.0, 0.0, 0.0]  # resting on the plane
+    scene = js.scene_from_dict(data)
+    obs = positions_only(scene, {"ks": 250.0, "kd": 0.05}, 100, 10)
+    with pytest.raises(js.InputError, match="every segment touches the ground.*strategy shooting"):
+        js.fit(scene, obs, ["ks"], init={"ks": 300.0}, strategy="free_shooting", segment_frames=5)

@@ -15,7 +15,7 @@ import pytest
 
 import jaxspring as js
 
-KILLS = 10
+KILLS = 6
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
 
 

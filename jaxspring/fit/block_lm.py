@@ -23,6 +23,7 @@ sweep, `lax.scan`), still two L x L solves per block.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -47,13 +48,31 @@ class BlockSolution:
     count: int
 
 
+def _links(linked, count):
+    """Which blocks link to the next one, (B,) bool, from `linked` (False, True, or a (B,) mask)."""
+    last = np.arange(count) < count - 1
+    return last & (np.asarray(linked, dtype=bool) if np.ndim(linked) else bool(linked))
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled(residual, linked: bool):
+    """The solver's jitted pieces for one residual function (reused across calls, e.g. the
+    stages of a continuation): normal pieces, total cost, and the damped solve."""
+    pieces = jax.jit(lambda p, s, d, links: _normal_pieces(residual, p, s, d, links if linked else False))
+    cost = jax.jit(lambda p, s, d, links: _costs(residual, p, s, d, links if linked else False).sum())
+    return pieces, cost, jax.jit(_solve)
+
+
 def _normal_pieces(residual, p, s, data, linked=False):
-    """Per block: cost, J_p^T J_p, J_p^T J_s, J_s^T J_s, J_p^T r, J_s^T r, and when `linked` the
-    couplings to the next block: E_b = -J_ls^T (L, L), F_b = -J_lp^T (P, L) and the defect
-    c_b = link_b - s_{b+1} (one block at a time)."""
-    size, count = p.shape[0], s.shape[0]
+    """Per block: cost, J_p^T J_p, J_p^T J_s, J_s^T J_s, J_p^T r, J_s^T r, and when `linked` (True,
+    or a (B,) mask of the blocks that link on) the couplings to the next block: E_b =
+    -J_ls^T (L, L), F_b = -J_lp^T (P, L) and the defect c_b = link_b - s_{b+1} (one block at
+    a time; all zero where a block does not link)."""
+    size = p.shape[0]
     following = jnp.concatenate([s[1:], s[-1:]])
-    has_next = jnp.arange(count) < count - 1
+    last = jnp.arange(s.shape[0]) < s.shape[0] - 1
+    has_next = last & (linked if jnp.ndim(linked) else bool(linked))
+    linked = bool(jnp.ndim(linked)) or bool(linked)
 
     def block(args):
         s_b, data_b, next_b, on = args
@@ -81,10 +100,12 @@ def _normal_pieces(residual, p, s, data, linked=False):
 
 
 def _costs(residual, p, s, data, linked=False):
-    if not linked:
+    if not (jnp.ndim(linked) or linked):
         return jax.vmap(lambda s_b, d: jnp.sum(residual(p, s_b, d) ** 2))(s, data)
     r, ahead = jax.vmap(lambda s_b, d: residual(p, s_b, d))(s, data)
-    return jnp.sum(r**2, axis=-1).at[:-1].add(jnp.sum((ahead[:-1] - s[1:]) ** 2, axis=-1))
+    on = linked[:-1] if jnp.ndim(linked) else True
+    gaps = jnp.where(on, jnp.sum((ahead[:-1] - s[1:]) ** 2, axis=-1), 0.0)
+    return jnp.sum(r**2, axis=-1).at[:-1].add(gaps)
 
 
 def _chain_solve(c, e, rhs):
@@ -116,13 +137,14 @@ def _chain_solve(c, e, rhs):
     return x
 
 
-def _solve(pieces, damping):
-    """The damped system's step (dp, ds) by the Schur complement; and the reduced matrix."""
+def _solve(pieces, damping, links=None):
+    """The damped system's step (dp, ds) by the Schur complement; and the reduced matrix.
+    `links`: (B,) which blocks link to the next (linked blocks)."""
     _, a, b, c, gp, gs = pieces[:6]
     if len(pieces) > 6:  # linked blocks: block b + 1 also sees the defect of block b's link
         e, f, defect = pieces[6:]
         local = c.shape[-1]
-        c = c.at[1:].add(jnp.eye(local, dtype=c.dtype))
+        c = c.at[1:].add(jnp.eye(local, dtype=c.dtype) * links[:-1, None, None])
         b = b.at[1:].add(f[:-1])
         gs = gs.at[1:].add(-defect[:-1])
     corner = a.sum(axis=0)
@@ -145,11 +167,13 @@ def _solve(pieces, damping):
 
 
 def block_levenberg_marquardt(
-    residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12, linked: bool = False
+    residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12, linked=False
 ) -> BlockSolution:
     """Minimise sum_b |residual(p, s_b, data_b)|^2 (`linked`: residual returns (r_b, link_b), and
-    the cost adds sum_{b < B-1} |link_b - s_{b+1}|^2) from (p (P,), s (B, L)); data: a pytree of (B, ...) arrays. A step is
-    taken only when the cost falls (never worse than given).
+    the cost adds sum_{b < B-1} |link_b - s_{b+1}|^2; a (B,) mask `linked` keeps only the
+    links of the blocks it marks, so the chain may break) from (p (P,), s (B, L)); data: a
+    pytree of (B, ...) arrays. A step is taken only when the cost falls (never worse than
+    given).
 
     Stops after `iterations` steps, when a step changes p by at most `tolerance` and the
     cost by at most that fraction, when two steps in a row change p and s by at most
@@ -159,15 +183,19 @@ def block_levenberg_marquardt(
     further steps (linear convergence when the residuals are noise, not zero) move it
     by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
     first value (exact data, fitted to round-off)."""
-    pieces_fn = jax.jit(lambda p, s, d: _normal_pieces(residual, p, s, d, linked))
-    cost_fn = jax.jit(lambda p, s, d: _costs(residual, p, s, d, linked).sum())
-    solve = jax.jit(_solve)
     p, s = jnp.asarray(p), jnp.asarray(s)
+    links = _links(linked, s.shape[0])
+    linked = bool(np.ndim(linked)) or bool(linked)
+    pieces_of, cost_of, solve_of = _compiled(residual, linked)
+    on = jnp.asarray(links)
+    pieces_fn = lambda p, s, d: pieces_of(p, s, d, on)  # noqa: E731
+    cost_fn = lambda p, s, d: cost_of(p, s, d, on)  # noqa: E731
+    solve = lambda pieces, damping: solve_of(pieces, damping, on.astype(s.dtype))  # noqa: E731
     pieces = pieces_fn(p, s, data)
     cost = initial_cost = float(pieces[0].sum())
     first = jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data)))
     count = int((first[0] if linked else first).shape[0])
-    rows = count * s.shape[0] + (s.shape[0] - 1) * s.shape[1] * linked  # with the links' rows
+    rows = count * s.shape[0] + int(links.sum()) * s.shape[1]  # with the links' rows
     freedom = max(rows - p.size - s.size, 1)
     history, damping, still = [], 1e-3, False
     for _ in range(iterations):

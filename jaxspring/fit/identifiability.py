@@ -161,7 +161,8 @@ def identifiability(
     `nuisance` other values (start states, eliminated: `start_polish`), so the standard
     errors include what those unknowns leave undetermined. A fit that minimised another
     objective (multiple shooting's segments) passes its own `normal`, `noise_variance` and
-    `objective` (words for the report); the whole horizon's roughness is then not checked.
+    `objective` (words for the report); the whole horizon is then not simulated, and a
+    parameter is "not identifiable" when its diagonal of `normal` vanishes.
 
     Example:
         >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
@@ -171,14 +172,19 @@ def identifiability(
     theta = unravel(flat)
     if flat.shape[0] > max_parameters:
         return None
-    r = np.asarray(residuals(flat))
-    jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
-    count, dims = getattr(observations, "residual_count", r.shape[0]), flat.shape[0]  # unseen markers carry no data
-    sigma2 = float(r @ r) / max(count - dims - nuisance, 1) if noise_variance is None else float(noise_variance)
-    normal = jac.T @ jac if normal is None else np.asarray(normal)
+    dims = flat.shape[0]
+    if noise_variance is None:  # the whole horizon's residuals
+        r = np.asarray(residuals(flat))
+        jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
+        count = getattr(observations, "residual_count", r.shape[0])  # unseen markers carry no data
+        sigma2 = float(r @ r) / max(count - dims - nuisance, 1)
+        normal = jac.T @ jac if normal is None else np.asarray(normal)
+        column = np.linalg.norm(jac, axis=0)
+    else:  # another objective's normal matrix and noise: the whole horizon is not simulated
+        sigma2, normal = float(noise_variance), np.asarray(normal)
+        column = np.sqrt(np.maximum(np.diag(normal), 0.0))
     labels = _labels(theta)
     warnings = []
-    column = np.linalg.norm(jac, axis=0)
     dead = column <= 1e-10 * max(float(column.max()), 1e-300)
     for i in np.nonzero(dead)[0]:
         warnings.append(f"{labels[i]} is not identifiable: the observed motion does not depend on it")
@@ -203,7 +209,7 @@ def identifiability(
     for i, label in enumerate(labels):
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
-    if objective is None:
+    if noise_variance is None and objective is None:
         warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):

@@ -342,15 +342,18 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0}
         if segment_fits is not None and stages[-1].kind == "free_shooting":  # standard errors of that objective
             fit = segment_fits[member]
-            links = fit.unknowns - fit.unknowns // len(fit.starts.x)  # (S - 1) L continuity rows
-            dof = max(fit.count + links - len(fit.reduced) - fit.unknowns, 1)
+            dof = max(fit.count + fit.link_rows - len(fit.reduced) - fit.unknowns, 1)
             shooting = dict(
                 normal=fit.reduced,
                 nuisance=fit.unknowns,
                 noise_variance=fit.loss * fit.count / dof,
                 objective=describe(fit),
             )
-            estimated = {"segment_x": np.asarray(fit.starts.x), "segment_v": np.asarray(fit.starts.v)}
+            estimated = {
+                "segment_x": np.asarray(fit.starts.x),
+                "segment_v": np.asarray(fit.starts.v),
+                "segment_frame": np.asarray(fit.first_frames),
+            }
         ident = identifiability(scene, obs, names, final, **shooting) if identify else None
         if ident and isinstance(obs, RecordingTarget) and not (estimated and "driven" in estimated):
             ident = warn_of_noisy_driven_paths(obs, ident)

@@ -59,7 +59,9 @@ class FitResult:
             "x0", "v0" the recordings' start states (R, N, 3) with `fit_start`, and
             "driven" the driven particles' paths (R, F, D, 3) at the frames from the
             start frame on with `fit_driven` [m, m/s]; after multiple shooting with free
-            states, "segment_x", "segment_v": the segments' fitted start states (S, N, 3).
+            states, "segment_x", "segment_v": the segments' fitted start states (S, N, 3),
+            "segment_frame": each segment's first frame (S,) (segments that touch the ground
+            are left out).
     """
 
     names: tuple
