@@ -13,7 +13,7 @@ float64; times are medians of `--repeats` warm runs (compiled), plus the first (
 3. Backward Euler's inner solves (`jax.scipy.sparse.linalg` CG in Newton, GMRES for the
    tangent) against `lineax.CG` / `lineax.GMRES`: a 2 s chain rollout and its gradient.
 
-    pip install optimistix lineax   # not dependencies of jaxspring
+    pip install -e ".[bench]"   # optimistix and lineax are not run-time dependencies
     python benchmarks/solvers.py [--repeats 3]
 """
 
@@ -121,15 +121,30 @@ def backward_euler(chain, repeats):
         params = model.params_with(scene.params, {"ks": ks})
         return jnp.sum(js.rollout(model, params, state, steps=2000, save_every=20).x[-1] ** 2)
 
-    rows = []
-    for label, cg, gmres in (
-        ("ours (jax.scipy CG, GMRES)", integrators.cg, integrators.gmres),
-        ("lineax CG, GMRES", lineax_cg, lineax_gmres),
-    ):
-        integrators.cg, integrators.gmres = cg, gmres
-        value_and_grad = jax.jit(jax.value_and_grad(loss))
-        result = timed(lambda f=value_and_grad: [float(x) for x in jax.block_until_ready(f(1000.0))], repeats)
-        rows.append(("backward Euler, chain 2 s, value and gradient" if not rows else "", label, result))
+    rows, ours = [], (integrators.cg, integrators.gmres)
+    traced = []  # which inner solvers the traced step called
+
+    def counted(solver, name):
+        def call(*args, **kwargs):
+            traced.append(name)
+            return solver(*args, **kwargs)
+
+        return call
+
+    try:
+        for label, cg, gmres in (
+            ("ours (jax.scipy CG, GMRES)", ours[0], ours[1]),
+            ("lineax CG, GMRES", lineax_cg, lineax_gmres),
+        ):
+            jax.clear_caches()  # the rollout's jitted step is traced again, with these solvers
+            traced.clear()
+            integrators.cg, integrators.gmres = counted(cg, "cg"), counted(gmres, "gmres")
+            value_and_grad = jax.jit(jax.value_and_grad(loss))
+            result = timed(lambda f=value_and_grad: [float(x) for x in jax.block_until_ready(f(1000.0))], repeats)
+            assert {"cg", "gmres"} <= set(traced), f"{label}: the step did not trace its solvers ({traced})"
+            rows.append(("backward Euler, chain 2 s, value and gradient" if not rows else "", label, result))
+    finally:
+        integrators.cg, integrators.gmres = ours
     return rows
 
 

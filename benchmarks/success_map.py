@@ -12,7 +12,7 @@ Prints the success rate, the median fit time and the worst draw per case.
 Cases: the chain over 10 s (500 frames, 50 segments), the same without spring damping,
 and `small_jelly_1s`: a 3 x 3 x 3 jelly with the jelly scene's springs, ground and spin,
 dropped from 0.3 m, landing and bouncing over 1 s (a frame every 10 steps). The jelly
-scene itself (7 x 6 x 5) is not in the map: one 10-frame segment's Jacobian (1,262
+scene itself (7 x 6 x 5) is not in the map: one 10-frame segment's Jacobian (1,260
 state columns) costs ~35 s per Levenberg-Marquardt step on 2 cores, beyond the
 3-minute target.
 """

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxspring.fit.block_lm import block_levenberg_marquardt
 
@@ -60,24 +61,27 @@ def test_a_nonlinear_problem_steps_only_downhill_to_its_exact_answer():
     assert all(later < earlier for earlier, later in zip(costs, costs[1:]))
 
 
-def test_linked_blocks_reach_the_dense_least_squares_answer_and_its_covariance():
+@pytest.mark.parametrize("mask", [None, [True, False, True, True, False]], ids=["chain", "broken chain"])
+def test_linked_blocks_reach_the_dense_least_squares_answer_and_its_covariance(mask):
     """Multiple shooting's structure: r_b = A_b p + C_b s_b - y_b and links G_b p + H_b s_b - s_{b+1}
-    (b < B - 1), so neighbouring blocks couple (block-tridiagonal); against the dense NumPy
-    solve of the stacked system."""
+    (b < B - 1, and only where `mask` keeps the link: the chain may break), so neighbouring
+    blocks couple (block-tridiagonal); against the dense NumPy solve of the stacked system."""
     a, c, y = _linear_problem(blocks=5, seed=1)
     blocks, rows, shared = a.shape
     local = c.shape[-1]
     rng = np.random.default_rng(2)
     g, h = rng.normal(size=(blocks, local, shared)), rng.normal(size=(blocks, local, local))
-    links = (blocks - 1) * local
+    kept = [b for b in range(blocks - 1) if mask is None or mask[b]]
+    links = len(kept) * local
     dense = np.zeros((blocks * rows + links, shared + blocks * local))
     target = np.concatenate([y.reshape(-1), np.zeros(links)])
     column = lambda b: slice(shared + b * local, shared + (b + 1) * local)  # noqa: E731
     for b in range(blocks):
         dense[b * rows : (b + 1) * rows, :shared] = a[b]
         dense[b * rows : (b + 1) * rows, column(b)] = c[b]
-        if b < blocks - 1:
-            row = slice(blocks * rows + b * local, blocks * rows + (b + 1) * local)
+        if b in kept:
+            i = kept.index(b)
+            row = slice(blocks * rows + i * local, blocks * rows + (i + 1) * local)
             dense[row, :shared], dense[row, column(b)], dense[row, column(b + 1)] = g[b], h[b], -np.eye(local)
     answer = np.linalg.lstsq(dense, target, rcond=None)[0]
     covariance = np.linalg.inv(dense.T @ dense)[:shared, :shared]
@@ -87,7 +91,7 @@ def test_linked_blocks_reach_the_dense_least_squares_answer_and_its_covariance()
 
     data = {k: jnp.asarray(v) for k, v in {"a": a, "c": c, "y": y, "g": g, "h": h}.items()}
     solution = block_levenberg_marquardt(
-        residual, np.ones(shared), np.ones((blocks, local)), data, iterations=50, linked=True
+        residual, np.ones(shared), np.ones((blocks, local)), data, iterations=50, linked=True if mask is None else mask
     )
     np.testing.assert_allclose(solution.p, answer[:shared], rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(solution.s.reshape(-1), answer[shared:], rtol=1e-7, atol=1e-9)

@@ -153,6 +153,7 @@ def test_warns_when_a_parameter_does_not_affect_the_data():
     obs = js.synthetic_observations(scene, {}, steps=200, save_every=20)
     report = js.identifiability(scene, obs, ["ks", "cd"], {"ks": 50.0, "cd": 0.1})
     assert any("cd is not identifiable" in w for w in report.warnings), report.warnings
+    assert "the other standard errors hold cd fixed at 0.1: they leave out its uncertainty" in report.warnings
     assert not any(w.startswith("ks") for w in report.warnings)
 
 

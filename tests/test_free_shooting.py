@@ -49,7 +49,7 @@ def test_positions_only_multiple_shooting_recovers_a_2s_chain(chain):
 
 
 def test_with_noise_the_segment_length_does_not_change_the_answer(chain):
-    """1% noise, positions only: with continuity raised to a constraint the answer is the
+    """1 s, 1% noise, positions only: with continuity raised to a constraint the answer is the
     maximum-likelihood fit of one continuous motion, whatever the segments (a fixed penalty's
     answer moves with them: its states take up noise as gaps), and within 3 standard errors."""
     obs = dataclasses.replace(
@@ -62,7 +62,7 @@ def test_with_noise_the_segment_length_does_not_change_the_answer(chain):
     for n, true in CHAIN_TRUTH.items():
         se = float(short.identifiability.relative_standard_error[n])
         assert abs(float(long.identifiability.relative_standard_error[n]) / se - 1) < 0.01
-        assert abs(np.log(float(short.final[n]) / float(long.final[n]))) < 0.01 * se, n
+        assert abs(np.log(float(short.final[n]) / float(long.final[n]))) < 0.05 * se, n
         assert abs(np.log(float(short.final[n]) / true)) < 3 * se, n
 
 
@@ -96,10 +96,11 @@ def test_positions_only_multiple_shooting_recovers_a_jelly_through_its_impacts()
         assert abs(float(result.final[n]) / true - 1) < 1e-8, (n, result.final[n])
     firsts = result.estimated["segment_frame"]
     np.testing.assert_array_equal(firsts, [0, 60])  # before the landing, and in the air after the bounce
-    for f in firsts:  # those segments are clear of the ground in the recorded motion, all others are not
-        assert recorded.states.x[f : f + 11, :, 1].min() > 0.0
-    lowest = [recorded.states.x[f : f + 11, :, 1].min() for f in range(0, 100, 10) if f not in firsts]
-    assert max(lowest) < 0.05
+    y = recorded.states.x[:, :, 1]  # every particle at every frame
+    fall = max(abs(y[i + 1, j] - y[i, j]) for i in range(len(y) - 1) for j in range(y.shape[1]))
+    for f in range(0, 100, 10):  # kept: clear of the ground by a frame's fall; left out: within it, or in contact
+        assert (y[f : f + 11].min() > fall) == (f in firsts), f
+    assert any(y[f : f + 11].min() < 0.0 for f in range(0, 100, 10))  # contact: below the plane
     assert "8 touching the ground left out" in result.identifiability.objective
     np.testing.assert_allclose(result.estimated["segment_x"][:, obs.particles], obs.x[firsts], atol=1e-10)
 

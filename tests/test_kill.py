@@ -15,7 +15,7 @@ import pytest
 
 import jaxspring as js
 
-KILLS = 6
+KILLS = 6  # each kill is a process start-up: 6 of each keep the file under 2 minutes of CI
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
 
 

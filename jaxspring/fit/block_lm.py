@@ -54,7 +54,7 @@ def _links(linked, count):
     return last & (np.asarray(linked, dtype=bool) if np.ndim(linked) else bool(linked))
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=2)  # one problem's stages; older problems let go
 def _compiled(residual, linked: bool):
     """The solver's jitted pieces for one residual function (reused across calls, e.g. the
     stages of a continuation): normal pieces, total cost, and the damped solve."""

@@ -173,11 +173,12 @@ def identifiability(
     if flat.shape[0] > max_parameters:
         return None
     dims = flat.shape[0]
-    if noise_variance is None:  # the whole horizon's residuals
+    whole = noise_variance is None or normal is None
+    if whole:  # the whole horizon's residuals
         r = np.asarray(residuals(flat))
         jac = np.asarray(jax.jit(jax.jacfwd(residuals))(flat))
         count = getattr(observations, "residual_count", r.shape[0])  # unseen markers carry no data
-        sigma2 = float(r @ r) / max(count - dims - nuisance, 1)
+        sigma2 = float(r @ r) / max(count - dims - nuisance, 1) if noise_variance is None else float(noise_variance)
         normal = jac.T @ jac if normal is None else np.asarray(normal)
         column = np.linalg.norm(jac, axis=0)
     else:  # another objective's normal matrix and noise: the whole horizon is not simulated
@@ -199,6 +200,11 @@ def identifiability(
     log_se = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     blind = np.abs(eigenvectors[:, ~visible]).max(axis=1) > 1e-3 if (~visible).any() else np.zeros(dims, bool)
     log_se[dead | blind] = np.inf
+    for i in np.nonzero((dead | blind) & (dims > 1))[0]:  # e.g. a damping run to zero, where no data reach it
+        warnings.append(
+            f"the other standard errors hold {labels[i]} fixed at {float(np.exp(flat[i])):.3g}: "
+            "they leave out its uncertainty"
+        )
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = covariance / np.outer(log_se, log_se)
     correlation[~np.isfinite(correlation)] = 0.0
@@ -209,7 +215,7 @@ def identifiability(
     for i, label in enumerate(labels):
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
-    if noise_variance is None and objective is None:
+    if whole and objective is None:
         warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):

@@ -290,7 +290,7 @@ def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, 
 
 def _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits):
     batched_data = len(observations) > 1
-    if stages[-1].kind == "free_shooting":  # each accepted step went downhill on that objective
+    if stages[-1].kind == "free_shooting":  # downhill on each continuity weight's objective, ending on the last
         if segment_fits is None:  # resumed after the stage: settle the states at the answer again
             segment_fits = [
                 fit_segments(

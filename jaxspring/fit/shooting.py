@@ -38,7 +38,18 @@ interval. A light weight first lets the states settle on the data while the para
 still wrong; the heavy last one makes continuity a constraint in all but name, so the answer
 is the maximum-likelihood fit of one continuous motion (a light penalty lets the states
 take up noise as small gaps, which biases the parameters: measured 3-4 standard errors on
-the 10 s chain with 1% noise at weight 100 alone)."""
+the 10 s chain with 1% noise at weight 100 alone). Exact data stop raising as soon as a
+raise moves no parameter; with noise every weight runs (`weights_for`: fewer in float32)."""
+
+
+def weights_for(dtype) -> tuple:
+    """The weights of `CONTINUITY_WEIGHTS` the dtype can carry: at weight w the data's share of
+    the states' normal matrix is about 1 / w, lost to round-off once w eps nears 1, so
+    float32 stops at 1e4 and float64 goes to 1e8."""
+    eps = float(jnp.finfo(dtype).eps)
+    return tuple(w for w in CONTINUITY_WEIGHTS if w * eps <= 1e-2) or CONTINUITY_WEIGHTS[:1]
+
+
 SMOOTHING = 3
 """Start-state guesses fit a cubic to the positions of 2 SMOOTHING + 1 frames around the
 segment's first one: noisy positions give far fewer stretched springs than raw frames, and
@@ -52,9 +63,10 @@ class SegmentFit:
     Attributes:
         values: name -> fitted value.
         starts: the segments' fitted start states, State with x, v (S, N, 3).
-        defects: each segment's end against the next segment's start, (S - 1, 2): largest
+        defects: each linked segment's end against the next segment's start, (links, 2): largest
             position gap [m] and velocity gap [m/s].
-        history: (cost / residual count, values) before each accepted step.
+        history: (cost / residual count, values) before each accepted step (the cost jumps up
+            where the continuity weight is raised: each weight is its own objective).
         loss: the shooting objective at the answer: (misfit^2 + weighted gaps^2) / residual count [m^2].
         reduced: the parameters' normal matrix with the states eliminated (for standard errors).
         count: residual values that carry data (observed coordinates).
@@ -142,16 +154,21 @@ class ShootingProblem:
 
 
 def touching(scene, observations: Observations, segment_frames: int, names=()) -> np.ndarray:
-    """(S,) which segments touch the ground: an observed particle within one frame's largest
-    fall of the plane at any of the segment's frames (its end included). All False without a
-    ground, or when a ground parameter is fitted (its segments are then needed)."""
+    """(S,) which segments touch the ground: an observed particle within a margin of the plane
+    at any of the segment's frames (its end included). The margin is one frame's largest
+    fall, plus, when some particles are not observed, how far the object reached below its
+    lowest observed particle at the start (so a body seen by its top markers still counts
+    as landing). All False without a ground, or when a ground parameter is fitted (its
+    segments are then needed)."""
     frames, k = observations.frame_count - 1, int(segment_frames)
     firsts = np.arange(0, frames, k)
     if not scene.model.has("ground") or {"kg", "kgd"} & set(names):
         return np.zeros(firsts.size, dtype=bool)
     y = np.asarray(observations.x, dtype=float)[..., 1]  # (F, M)
     fall = np.nanmax(np.abs(np.diff(y, axis=0)), initial=0.0)
-    low = np.nanmin(y, axis=1) < float(scene.params.ground_height) + fall  # (F,)
+    start = np.asarray(observations.initial_state.x, dtype=float)[:, 1]
+    below = max(float(np.nanmin(y[0], initial=np.inf) - start.min()), 0.0) if np.isfinite(y[0]).any() else 0.0
+    low = np.nanmin(y, axis=1) < float(scene.params.ground_height) + fall + below  # (F,)
     return np.array([low[f : min(f + k, frames) + 1].any() for f in firsts])
 
 
@@ -245,7 +262,7 @@ def fit_segments(
         raise InputError("segment_frames", "must be >= 1", "set e.g. segment_frames = 10")
     problem = shooting_problem(scene, observations, names, values, segment_frames, CONTINUITY_WEIGHTS[0])
     p, guess, history = problem.p0, None, []
-    for stage, weight in enumerate(CONTINUITY_WEIGHTS):
+    for stage, weight in enumerate(weights_for(problem.s0.dtype)):
         data = problem.restart(guess, weight) if stage else problem.data
         solution = block_levenberg_marquardt(
             problem.residual, p, problem.s0, data, iterations=iterations, tolerance=tolerance, linked=problem.links
@@ -259,13 +276,18 @@ def fit_segments(
     model = scene.model
     params = model.params_with(scene.params, values)
     steps = int(segment_frames) * observations.save_every
-    end = jax.vmap(lambda x, v: final_state(model, params, State(x=x, v=v), steps))(guess.x[:-1], guess.v[:-1])
-    gap_x = np.abs(np.asarray(end.x - guess.x[1:])).max(axis=(1, 2), initial=0.0)
-    gap_v = np.abs(np.asarray(end.v - guess.v[1:])).max(axis=(1, 2), initial=0.0)
+    joined = np.nonzero(problem.links)[0]  # segments whose end meets the next one's start
+    defects = np.zeros((joined.size, 2))
+    if joined.size:
+        end = jax.vmap(lambda x, v: final_state(model, params, State(x=x, v=v), steps))(
+            guess.x[joined], guess.v[joined]
+        )
+        defects[:, 0] = np.abs(np.asarray(end.x - guess.x[joined + 1])).max(axis=(1, 2))
+        defects[:, 1] = np.abs(np.asarray(end.v - guess.v[joined + 1])).max(axis=(1, 2))
     return SegmentFit(
         values=values,
         starts=guess,
-        defects=np.stack([gap_x, gap_v], axis=1)[problem.links[:-1]],
+        defects=defects,
         history=history,
         loss=solution.cost / problem.count,
         reduced=solution.reduced,
@@ -304,7 +326,8 @@ def describe(fit: SegmentFit) -> str:
     """The objective a SegmentFit minimises, in words (for the identifiability report)."""
     segments = fit.starts.x.shape[0]
     left_out = f"; {fit.left_out} touching the ground left out" if fit.left_out else ""
+    gap = f"largest continuity gap {fit.defects[:, 0].max():.2g} m" if len(fit.defects) else "none joined"
     return (
         f"multiple shooting: the misfit of {segments} segments of {fit.segment_frames} frames, each from a "
-        f"fitted start state (largest continuity gap {fit.defects[:, 0].max(initial=0.0):.2g} m{left_out})"
+        f"fitted start state ({gap}{left_out})"
     )
