@@ -139,6 +139,7 @@ class ShootingProblem:
         count: residual values that carry data (observed coordinates).
         links: (S,) whether segment b's end is joined to the next block's start.
         first_frames: (S,) each block's first frame (segments touching the ground are left out).
+        left_out: how many segments touch the ground and are left out.
     """
 
     p0: jax.Array
@@ -151,6 +152,7 @@ class ShootingProblem:
     count: int
     links: np.ndarray
     first_frames: np.ndarray
+    left_out: int
 
 
 def touching(scene, observations: Observations, segment_frames: int, names=()) -> np.ndarray:
@@ -184,7 +186,8 @@ def shooting_problem(
     model, base = scene.model.forward_mode(), scene.params  # Jacobians are taken with jacfwd
     p0, unravel = ravel_pytree({n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names})
     every, frames, k = observations.save_every, observations.frame_count - 1, int(segment_frames)
-    kept = np.nonzero(~touching(scene, observations, k, names))[0]
+    ground = touching(scene, observations, k, names)
+    kept = np.nonzero(~ground)[0]
     if kept.size == 0:
         raise InputError(
             "strategy",
@@ -234,7 +237,9 @@ def shooting_problem(
     s0 = jnp.zeros((count, free.size * 6), dtype=guess.x.dtype)
     count_data = int(owned.sum()) * particles.size * 3
     data = restart(guess, weight)
-    return ShootingProblem(p0, unravel, s0, residual, data, to_states, restart, count_data, links, kept * k)
+    return ShootingProblem(
+        p0, unravel, s0, residual, data, to_states, restart, count_data, links, kept * k, int(ground.sum())
+    )
 
 
 def _values(unravel, p) -> dict:
@@ -296,7 +301,7 @@ def fit_segments(
         segment_frames=int(segment_frames),
         first_frames=problem.first_frames,
         link_rows=int(problem.links.sum()) * problem.s0.shape[1],
-        left_out=int(touching(scene, observations, segment_frames, names).sum()),
+        left_out=problem.left_out,
     )
 
 
