@@ -17,12 +17,14 @@ from .fit import (
     FitProgress,
     FitResult,
     FitSettings,
+    Horizon,
     Identifiability,
     Observations,
     fit,
     fit_batch,
     identifiability,
     observations_from_trajectory,
+    smooth_horizon,
     synthetic_observations,
 )
 from .fit.predict import Prediction, predict
@@ -114,6 +116,8 @@ __all__ = [
     "synthetic_observations",
     "observations_from_file",
     "identifiability",
+    "smooth_horizon",
+    "Horizon",
     "Identifiability",
     "Experiment",
     "load_experiment",

@@ -3,16 +3,20 @@
 The fit minimises the mean squared position error over the observed particles and
 frames. Positive parameters are optimised in log space. Long targets are fitted in
 stages: a horizon curriculum (short, then longer) or multiple shooting (short
-segments started from recorded states) followed by a full-horizon stage, so the
-final answer is always a full-horizon least-squares fit. Where contact makes the
-loss rough, that last stage is an ensemble Gauss-Newton on the loss smoothed at the
-scale of the parameters' own uncertainty (see `FitSettings.ensemble`).
+segments started from recorded states) followed by a final stage over the horizon
+the misfit stays smooth over (`horizon`: the whole target when it is, else segments
+from recorded states as long as that), or multiple shooting with the segments' states
+fitted (`shooting`). Where contact makes the loss rough, a whole-horizon last stage is
+an ensemble Gauss-Newton on the loss smoothed at the scale of the parameters' own
+uncertainty (see `FitSettings.ensemble`).
 
 Modules: `settings` (FitSettings, the plan of stages), `objective` (the misfit),
-`loop` (fit, fit_batch), `ensemble` (the ensemble stage), `identifiability`
-(Gauss-Newton polish, standard errors), `results`, `observations`.
+`horizon` (how long the misfit stays smooth), `loop` (fit, fit_batch), `ensemble` (the
+ensemble stage), `identifiability` (Gauss-Newton polish, standard errors), `results`,
+`observations`, `shooting` and `block_lm` (free multiple shooting).
 """
 
+from .horizon import Horizon, smooth_horizon
 from .identifiability import Identifiability, identifiability
 from .loop import fit, fit_batch
 from .observations import Observations, observations_from_trajectory, synthetic_observations
@@ -23,11 +27,13 @@ __all__ = [
     "FitProgress",
     "FitResult",
     "FitSettings",
+    "Horizon",
     "Identifiability",
     "Observations",
     "fit",
     "fit_batch",
     "identifiability",
     "observations_from_trajectory",
+    "smooth_horizon",
     "synthetic_observations",
 ]

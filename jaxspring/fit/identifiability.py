@@ -66,14 +66,15 @@ class _PolishSteps(list):
     final_loss: float
 
 
-def gauss_newton_polish(scene, observations, names, values, settings, max_parameters: int = 64):
-    """Levenberg-Marquardt on the full-horizon residuals, from the first-order optimiser's answer.
+def gauss_newton_polish(scene, observations, names, values, settings, max_parameters: int = 64, segment=None):
+    """Levenberg-Marquardt on the full-horizon residuals (with `segment`, on segments of that
+    many frames from recorded states), from the first-order optimiser's answer.
 
     Least squares with few parameters is what Gauss-Newton is for: it is invariant to the
     parameters' scales, so it finishes a flat, badly scaled valley (the jelly's damping
     against its stiffness) where a first-order method crawls.
     """
-    flat, unravel, residuals = residual_function(scene, observations, names, values)
+    flat, unravel, residuals = residual_function(scene, observations, names, values, segment)
     if flat.shape[0] > max_parameters:
         return []
     residuals = jax.jit(residuals)
@@ -148,6 +149,7 @@ def identifiability(
     nuisance: int = 0,
     noise_variance: float | None = None,
     objective: str | None = None,
+    segment: int | None = None,
 ):
     """Gauss-Newton standard errors and correlations of `values` for the full-horizon fit.
 
@@ -162,13 +164,15 @@ def identifiability(
     errors include what those unknowns leave undetermined. A fit that minimised another
     objective (multiple shooting's segments) passes its own `normal`, `noise_variance` and
     `objective` (words for the report); the whole horizon is then not simulated, and a
-    parameter is "not identifiable" when its diagonal of `normal` vanishes.
+    parameter is "not identifiable" when its diagonal of `normal` vanishes. A fit whose final
+    stage ran over segments of `segment` frames from recorded states passes `segment`: the
+    residuals are those segments'.
 
     Example:
         >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
     """
     names = tuple(names)
-    flat, unravel, residuals = residual_function(scene, observations, names, values)
+    flat, unravel, residuals = residual_function(scene, observations, names, values, segment)
     theta = unravel(flat)
     if flat.shape[0] > max_parameters:
         return None
@@ -215,7 +219,7 @@ def identifiability(
     for i, label in enumerate(labels):
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
-    if whole and objective is None:
+    if whole and (objective is None or segment):
         warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):

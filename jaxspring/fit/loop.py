@@ -18,14 +18,15 @@ from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
 from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
+from .horizon import describe_segments, describe_smoothness, smooth_horizon
 from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
-from .settings import FitSettings, Stage, plan_stages
-from .shooting import describe, fit_segments, free_shooting_stage
+from .settings import FitSettings, Stage, needs_horizon, over_horizon, plan_stages
+from .shooting import describe, fit_segments, free_shooting_stage, touching
 
 
 def _optimizer(settings: FitSettings):
@@ -181,6 +182,10 @@ def fit_batch(
     )
     segment_fits = None
     while not progress.done:
+        if progress.stage == len(stages) - 1 and needs_horizon(stages):
+            if progress.horizon is None:  # measured once, at the shooting answer; a resumed fit reads it
+                progress.horizon = _measured_horizon(scene, observations, names, settings, progress)
+            stages[-1] = _final_stage(scene, reference, names, settings, stages[-1], progress.horizon)
         stage = stages[progress.stage]
         if stage.kind == "free_shooting":  # Levenberg-Marquardt with the segments' states, per member
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
@@ -195,7 +200,28 @@ def fit_batch(
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)
+    if progress.horizon is not None and needs_horizon(stages):  # a finished fit read back
+        stages[-1] = _final_stage(scene, reference, names, settings, stages[-1], progress.horizon)
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
+
+
+def _measured_horizon(scene, observations, names, settings, progress) -> int:
+    """The frames over which every member's misfit stays smooth at `settings.horizon_spread`,
+    measured at its current values (`smooth_horizon`)."""
+    frames = []
+    for member in range(np.shape(progress.theta[names[0]])[0]):
+        values = {n: np.exp(np.asarray(progress.theta[n][member], dtype=float)) for n in names}
+        obs = observations[member if len(observations) > 1 else 0]
+        frames.append(smooth_horizon(scene, obs, names, values, spread=settings.horizon_spread).frames)
+    return min(frames)
+
+
+def _final_stage(scene, reference, names, settings, stage: Stage, horizon: int) -> Stage:
+    """`over_horizon` for this target; free shooting only where some segment is clear of the ground."""
+    final = over_horizon(stage, horizon, reference.full, settings.segment_frames)
+    if final.kind == "free_shooting" and touching(scene, reference, final.frames, names).all():
+        return stage  # nothing for free shooting to fit: the whole horizon, reported as not smooth
+    return final
 
 
 @dataclasses.dataclass(frozen=True)
@@ -311,7 +337,16 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         _, _, value = step_function(loss, settings, batched_data)
         progress.theta, final_loss = best_of_stages(progress, names, value, data)
     results = []
-    polish_stage = Stage("gauss_newton", observations[0].frame_count - 1)
+    total = observations[0].frame_count - 1
+    segment = stages[-1].frames if stages[-1].kind == "shooting" else None  # the final misfit over segments
+    polish_stage = Stage("gauss_newton", segment or total)
+    horizon_objective, horizon_words = {}, ""
+    if progress.horizon is not None:  # the final stage was fitted to the horizon measured after the others
+        horizon_words = describe_smoothness(progress.horizon, total, settings.horizon_spread)
+        horizon_objective = dict(
+            segment=segment,
+            objective=describe_segments(segment, total, progress.horizon, settings.horizon_spread),
+        )
     for member, start in enumerate(start_values):
         obs = observations[member if batched_data else 0]
         final = {n: np.asarray(jnp.exp(progress.theta[n][member])) for n in names}
@@ -327,7 +362,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
             estimated = estimated_inputs(obs, "driven" in nuisance)
         else:
             whole = settings.polish and stages[-1].kind != "free_shooting"  # never past the segments
-            steps = gauss_newton_polish(scene, obs, names, final, settings) if whole else []
+            steps = gauss_newton_polish(scene, obs, names, final, settings, segment=segment) if whole else []
         for loss_before, values_before in steps:
             history.append(loss_before)
             for n in names:
@@ -339,7 +374,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
         else:
             final_loss_member = final_loss[member]
         reduced = getattr(steps, "reduced", None)  # start states estimated too: their uncertainty counts
-        shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0}
+        shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0, **horizon_objective}
         if segment_fits is not None and stages[-1].kind == "free_shooting":  # standard errors of that objective
             fit = segment_fits[member]
             dof = max(fit.count + fit.link_rows - len(fit.reduced) - fit.unknowns, 1)
@@ -347,7 +382,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
                 normal=fit.reduced,
                 nuisance=fit.unknowns,
                 noise_variance=fit.loss * fit.count / dof,
-                objective=describe(fit),
+                objective=describe(fit) + (f" ({horizon_words})" if progress.horizon is not None else ""),
             )
             estimated = {
                 "segment_x": np.asarray(fit.starts.x),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -68,33 +70,39 @@ def misfit_function(scene: Scene, observations: Observations, names, frames: int
     return misfit
 
 
-def loss_function(scene: Scene, observations: Observations, names, stage: Stage):
-    """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
-    if isinstance(observations, RecordingTarget):
-        return recording_loss.loss_function(scene, observations, names, stage)
+def segment_misfit_function(scene: Scene, observations: Observations, names, segment: int):
+    """misfit(theta, data): the target cut into segments of `segment` frames, each simulated
+    from the recorded state at its first frame, minus the observed positions, (count, segment, M, 3).
+
+    The trailing frames that do not fill a segment are left out. Needs recorded states
+    (`observations.full`).
+    """
     model, base = scene.model, scene.params
     particles = jnp.asarray(observations.particles)
     every = observations.save_every
 
-    def params_of(theta):
-        return model.params_with(base, {n: jnp.exp(theta[n]) for n in names})
-
-    if stage.kind in ("direct", "ensemble"):
-        misfit = misfit_function(scene, observations, names, stage.frames)
-        return lambda theta, data: jnp.mean(misfit(theta, data) ** 2)
-    segment = stage.frames
-
-    def loss(theta, data):
-        params = params_of(theta)
+    def misfit(theta, data):
+        params = model.params_with(base, {n: jnp.exp(theta[n]) for n in names})
         count = (data["x"].shape[0] - 1) // segment
         starts = State(
             x=data["states_x"][0 : count * segment : segment], v=data["states_v"][0 : count * segment : segment]
         )
         target = data["x"][1 : count * segment + 1].reshape((count, segment) + data["x"].shape[1:])
-        run = lambda s: rollout(model, params, s, steps=segment * every, save_every=every).x[1:]  # noqa: E731
-        return jnp.mean((jax.vmap(run)(starts)[:, :, particles] - target) ** 2)
+        run = lambda s: rollout(model, params, s, steps=segment * every, save_every=every).x[1:, particles]  # noqa: E731
+        return jax.vmap(run)(starts) - target
 
-    return loss
+    return misfit
+
+
+def loss_function(scene: Scene, observations: Observations, names, stage: Stage):
+    """loss(theta, data) for one stage; theta maps name -> log value, data holds the target."""
+    if isinstance(observations, RecordingTarget):
+        return recording_loss.loss_function(scene, observations, names, stage)
+    if stage.kind == "shooting":
+        misfit = segment_misfit_function(scene, observations, names, stage.frames)
+    else:
+        misfit = misfit_function(scene, observations, names, stage.frames)
+    return lambda theta, data: jnp.mean(misfit(theta, data) ** 2)
 
 
 def target_data(observations: Observations) -> dict:
@@ -107,20 +115,17 @@ def target_data(observations: Observations) -> dict:
     return data
 
 
-def residual_function(scene: Scene, observations: Observations, names, values: dict):
-    """(flat log parameters, unravel, residuals(flat) -> (n,)) for the full horizon."""
+def residual_function(scene: Scene, observations: Observations, names, values: dict, segment: int | None = None):
+    """(flat log parameters, unravel, residuals(flat) -> (n,)) for the full horizon, or with
+    `segment` for the target cut into segments of that many frames from recorded states."""
     if isinstance(observations, RecordingTarget):
         return recording_loss.residual_function(scene, observations, names, values)
     theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
     flat, unravel = ravel_pytree(theta)
-    base, model = scene.params, scene.model.forward_mode()  # Jacobians are taken with jacfwd
-    particles = jnp.asarray(observations.particles)
-    every, frames = observations.save_every, observations.frame_count - 1
-    target = jnp.asarray(observations.x)
-
-    def residuals(vector):
-        p = model.params_with(base, {n: jnp.exp(v) for n, v in unravel(vector).items()})
-        x = rollout(model, p, observations.initial_state, steps=frames * every, save_every=every).x
-        return (x[1:, particles] - target[1:]).reshape(-1)
-
-    return flat, unravel, residuals
+    forward = dataclasses.replace(scene, model=scene.model.forward_mode())  # Jacobians are taken with jacfwd
+    if segment:
+        misfit = segment_misfit_function(forward, observations, names, segment)
+    else:
+        misfit = misfit_function(forward, observations, names, observations.frame_count - 1)
+    data = target_data(observations)
+    return flat, unravel, lambda vector: misfit(unravel(vector), data).reshape(-1)

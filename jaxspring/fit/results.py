@@ -26,6 +26,8 @@ class FitProgress:
         last_step: largest log-parameter change of the last iteration, per member (B,).
         done: whether the fit finished.
         wall_s: time spent so far [s].
+        horizon: frames the final stage's misfit stays smooth over, once measured
+            (`fit.horizon`; None before, or when the plan does not ask).
     """
 
     stage: int
@@ -38,6 +40,7 @@ class FitProgress:
     last_step: np.ndarray | None = None
     done: bool = False
     wall_s: float = 0.0
+    horizon: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -58,6 +58,18 @@ class FitSettings:
             fitted, else "gradient".
         ensemble_members: rollouts per ensemble step (even; at least 4 per fitted value).
         ensemble_spread: the cloud's initial standard deviation in log-parameter space.
+        horizon_spread: the final stage of a plan with earlier, shorter stages (strategy
+            "shooting", "curriculum", or "auto" choosing one) fits the whole horizon only
+            when the motion stays smooth over all of it when a value moves by this much in
+            log space (`fit.horizon.smooth_horizon`, measured where the earlier stages
+            ended): over several impacts or a chaotic spin the whole-horizon misfit is a
+            landscape of dips and walls that a polish walks away from a good answer in.
+            Otherwise, with recorded states, it fits the longest segments, each from its
+            recorded start state, that are smooth (by the optimiser: no ensemble stage is
+            needed at this scale); from positions alone, multiple shooting with fitted
+            segment states ("free_shooting"; kept whole when every segment touches the
+            ground). The default, 10%, is farther than a shooting answer lies from the
+            truth on the seed scenes.
     """
 
     optimizer: str = "lbfgs"
@@ -75,6 +87,7 @@ class FitSettings:
     ensemble: str = "auto"
     ensemble_members: int = 32
     ensemble_spread: float = 0.3
+    horizon_spread: float = 0.1
 
     def validate(self):
         if self.optimizer not in OPTIMIZERS:
@@ -99,6 +112,7 @@ class FitSettings:
             "step_tolerance",
             "warmup_step_tolerance",
             "ensemble_spread",
+            "horizon_spread",
         ):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value > 0):
@@ -113,6 +127,8 @@ class Stage:
     `kind`: "direct" (the optimiser on the loss), "shooting" (segments of `frames` frames
     from recorded states), "free_shooting" (segments of `frames` frames from fitted start
     states, Levenberg-Marquardt) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
+    A "gauss_newton" stage (the optional polish, after the others) shorter than the target
+    ran over segments from recorded states, as "shooting" does.
     """
 
     kind: str
@@ -167,6 +183,30 @@ def plan_stages(
             )
         stages[-1] = Stage("ensemble", total)
     return stages
+
+
+def needs_horizon(stages: list[Stage]) -> bool:
+    """Whether the plan's final stage is to be fitted to the horizon its misfit stays smooth
+    over (`over_horizon`): shorter stages came first (multiple shooting from recorded
+    states, or a curriculum's shorter horizons), and the final stage still spans the whole
+    target from its initial state."""
+    return len(stages) > 1 and stages[0].kind in ("shooting", "direct") and stages[-1].kind in ("direct", "ensemble")
+
+
+def over_horizon(stage: Stage, horizon: int, recorded: bool = True, segment_frames: int = 10) -> Stage:
+    """The final stage `stage` (over the whole target) when `horizon` frames cover the
+    target; else, with `recorded` states, multiple shooting from them with the longest equal
+    segments of at most `horizon` frames (the optimiser on a misfit smooth at the measured
+    scale; fewer trailing frames left out than there are segments), and from positions
+    alone multiple shooting with fitted segment states ("free_shooting", segments of
+    `segment_frames` frames, or `horizon` if shorter)."""
+    total = stage.frames
+    if horizon >= total:
+        return stage
+    horizon = max(int(horizon), 1)
+    if recorded:
+        return Stage("shooting", total // math.ceil(total / horizon))
+    return Stage("free_shooting", min(int(segment_frames), horizon))
 
 
 def _shootable(observations) -> bool:

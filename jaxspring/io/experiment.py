@@ -229,6 +229,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         tolerance=fit_table.take("tolerance", schema.number, default=defaults.tolerance),
         ensemble=fit_table.take("ensemble", schema.string, default=defaults.ensemble),
         ensemble_members=fit_table.take("ensemble_members", schema.count, default=defaults.ensemble_members),
+        horizon_spread=fit_table.take("horizon_spread", schema.number, default=defaults.horizon_spread),
     )
     backend = fit_table.take("backend", schema.string)
     loss = fit_table.take("loss", schema.string, default="mse")

@@ -63,6 +63,8 @@ def save_fit(
         optimizer.attrs.update(stage=progress.stage, iteration=progress.iteration, wall_s=progress.wall_s)
         if progress.last_step is not None:
             optimizer.create_dataset("last_step", data=np.asarray(progress.last_step))
+        if progress.horizon is not None:
+            optimizer.attrs["horizon"] = int(progress.horizon)
         theta = optimizer.create_group("theta")
         for n in progress.theta:  # the log parameters, and a fitted start state and driven paths
             theta.create_dataset(n, data=np.asarray(progress.theta[n]))
@@ -120,6 +122,7 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
             last_step=optimizer["last_step"][()] if "last_step" in optimizer else None,
             done=bool(f.attrs["done"]),
             wall_s=float(optimizer.attrs["wall_s"]),
+            horizon=int(optimizer.attrs["horizon"]) if "horizon" in optimizer.attrs else None,
         )
 
 

@@ -1,0 +1,155 @@
+"""The objective's horizon: the nonlinearity measure against a loop over rollouts written
+here, and a chaotic target whose final stage is cut to that horizon, checked against the
+misfit itself evaluated on a line of parameter values."""
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxspring as js
+from jaxspring.fit.horizon import smooth_horizon
+from jaxspring.fit.loop import _final_stage
+from jaxspring.fit.objective import loss_function, target_data
+from jaxspring.fit.results import FitProgress
+from jaxspring.fit.settings import Stage, needs_horizon, over_horizon
+from jaxspring.io.fit_file import load_fit_progress, save_fit
+
+jax.config.update("jax_enable_x64", True)
+SCENES = Path(__file__).parents[1] / "scenes"
+CHAIN_TRUTH = {"ks": 1000.0, "kd": 5.0, "cd": 0.05}
+JELLY_TRUTH = {"ks": 250.0, "kd": 0.05}
+
+
+def reference_nonlinearity(scene, obs, names, values, cloud, start, length):
+    """sqrt(unexplained / explained) of a least-squares fit, with an intercept, of the
+    positions over frames start+1 .. start+length against the cloud's offsets: every
+    member simulated on its own."""
+    rows = []
+    for offset in cloud:
+        params = scene.model.params_with(scene.params, {n: values[n] * np.exp(offset[i]) for i, n in enumerate(names)})
+        state = js.State(x=obs.states.x[start], v=obs.states.v[start])
+        x = js.rollout(scene.model, params, state, steps=length * obs.save_every, save_every=obs.save_every).x
+        rows.append(np.asarray(x[1:, obs.particles]).reshape(-1))
+    y = np.array(rows)
+    design = np.column_stack([np.ones(len(cloud)), cloud])
+    coefficients = np.linalg.lstsq(design, y, rcond=None)[0]
+    fitted = design @ coefficients
+    left = y - fitted
+    explained = fitted - y.mean(axis=0)
+    return np.sqrt(np.sum(left**2) / np.sum(explained**2))
+
+
+def test_the_nonlinearity_matches_a_loop_over_rollouts(scenes):
+    chain = scenes["chain"]
+    obs = js.synthetic_observations(chain, CHAIN_TRUTH, steps=400, save_every=40)  # 10 frames after frame 0
+    names = ["ks", "kd", "cd"]
+    rng = np.random.default_rng(3)
+    cloud = rng.normal(0.0, 0.6, size=(7, 3)) + 0.05  # not symmetric, not centred
+    horizon = smooth_horizon(chain, obs, names, CHAIN_TRUTH, cloud=cloud, starts=3, limit=0.2)
+    np.testing.assert_array_equal(horizon.starts, [0, 3, 6])
+    crossing = horizon.total
+    for row, start in enumerate(horizon.starts):
+        for length in range(1, horizon.total - start + 1):
+            expected = reference_nonlinearity(chain, obs, names, CHAIN_TRUTH, cloud, start, length)
+            np.testing.assert_allclose(horizon.nonlinearity[row, length - 1], expected, rtol=1e-7)
+            if expected > 0.2:
+                crossing = min(crossing, max(length - 1, 1))
+                break
+        assert np.all(np.isnan(horizon.nonlinearity[row, horizon.total - start :]))  # past the target's end
+    assert crossing < horizon.total  # the limit is crossed somewhere: the horizon is the first crossing
+    assert horizon.frames == crossing
+
+
+def test_a_smooth_target_keeps_its_whole_horizon(scenes):
+    obs = js.synthetic_observations(scenes["chain"], CHAIN_TRUTH, steps=3000, save_every=30)
+    horizon = smooth_horizon(scenes["chain"], obs, list(CHAIN_TRUTH), CHAIN_TRUTH)
+    assert horizon.whole and horizon.frames == 100
+    assert "over all 100 frames" in horizon.describe()
+
+
+@pytest.fixture(scope="module")
+def spinning_jelly():
+    """A 3 x 3 x 3 jelly with the jelly scene's springs, ground and spin, dropped 0.3 m: it
+    lands, bounces and tumbles for 1.5 s (full states recorded, no noise)."""
+    data = tomllib.loads((SCENES / "jelly.toml").read_text())
+    data["lattice"]["shape"], data["lattice"]["origin"] = [3, 3, 3], [0.0, 0.3, 0.0]
+    scene = js.scene_from_dict(data)
+    return scene, js.synthetic_observations(scene, JELLY_TRUTH, steps=1500, save_every=10)
+
+
+def local_minima(scene, obs, stage, name):
+    """Local minima of a stage's misfit along log(name) within +-10% of the truth (41 points)."""
+    offsets = np.linspace(-0.1, 0.1, 41)
+    theta = {n: jnp.full(offsets.size, np.log(v)) for n, v in JELLY_TRUTH.items()}
+    theta[name] = theta[name] + offsets
+    loss = jax.jit(jax.vmap(loss_function(scene, obs, list(JELLY_TRUTH), stage), in_axes=(0, None)))
+    values = np.asarray(loss(theta, target_data(obs)))
+    return [offsets[i] for i in range(1, offsets.size - 1) if values[i] < min(values[i - 1], values[i + 1])]
+
+
+def test_a_chaotic_target_is_fitted_over_the_horizon_its_misfit_is_smooth_over(spinning_jelly):
+    scene, obs = spinning_jelly
+    result = js.fit(scene, obs, ["ks", "kd"], init={"ks": 600.0, "kd": 0.02})  # auto: shooting, then the horizon
+    for n, true in JELLY_TRUTH.items():
+        assert abs(float(result.final[n]) / true - 1) < 1e-7, (n, result.final[n])
+    first, final = result.stages
+    assert first == Stage("shooting", 10)
+    assert final.kind == "shooting" and 10 < final.frames < 150  # segments, longer than the warm-up's
+    objective = result.identifiability.objective
+    assert objective.startswith(f"the misfit over {150 // final.frames} segments of {final.frames} frames")
+    assert "not over all 150" in objective and f"minimised: {objective}" in result.table()
+    # the misfit itself, on a line of ks values within 10% of the truth: over the whole horizon it
+    # has dips all along (a polish there can stop anywhere); over the final stage's segments one
+    assert len(local_minima(scene, obs, Stage("direct", 150), "ks")) > 2
+    assert local_minima(scene, obs, final, "ks") == [0.0]
+
+
+def test_the_measured_horizon_is_kept_for_a_resumed_fit(tmp_path):
+    progress = FitProgress(1, 3, {"ks": jnp.zeros(1)}, None, [np.zeros(1)] * 3, {"ks": [np.ones(1)] * 3}, [0, 0, 1])
+    progress.horizon = 37
+    save_fit(tmp_path / "f.h5", {"a": 1}, ["ks"], {"ks": 1.0}, progress)
+    assert load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks"]).horizon == 37
+    with h5py.File(tmp_path / "f.h5", "a") as f:  # a fit that never measured one
+        del f["fit/optimizer"].attrs["horizon"]
+    assert load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks"]).horizon is None
+
+
+def test_positions_only_targets_start_from_the_initial_state(scenes):
+    obs = dataclasses.replace(js.synthetic_observations(scenes["chain"], CHAIN_TRUTH, 300, 30), states=None)
+    horizon = smooth_horizon(scenes["chain"], obs, ["ks"], {"ks": 1000.0})
+    np.testing.assert_array_equal(horizon.starts, [0])
+    assert horizon.nonlinearity.shape == (1, 10) and horizon.whole
+
+
+def test_the_final_stage_for_a_horizon():
+    whole = Stage("ensemble", 150)
+    assert over_horizon(whole, 150) == whole and over_horizon(whole, 400, recorded=False) == whole
+    assert over_horizon(whole, 62) == Stage("shooting", 50)  # 3 equal segments, none longer than 62
+    assert over_horizon(Stage("direct", 250), 62) == Stage("shooting", 50)  # 5 x 50
+    assert over_horizon(Stage("direct", 200), 89) == Stage("shooting", 66)  # 3 x 66, 2 frames left out
+    assert over_horizon(whole, 136, recorded=False, segment_frames=10) == Stage("free_shooting", 10)
+    assert over_horizon(whole, 6, recorded=False, segment_frames=10) == Stage("free_shooting", 6)
+    assert needs_horizon([Stage("shooting", 10), whole]) and needs_horizon([Stage("direct", 19), Stage("direct", 150)])
+    assert not needs_horizon([whole]) and not needs_horizon([Stage("free_shooting", 10)])
+
+
+def test_positions_on_the_ground_keep_the_whole_horizon():
+    """From positions alone the final stage would be free shooting, which leaves out segments
+    that touch the ground: a jelly resting on the plane keeps its whole-horizon stage."""
+    data = tomllib.loads((SCENES / "jelly.toml").read_text())
+    data["lattice"]["shape"], data["lattice"]["origin"] = [2, 2, 2], [0.0, 0.0, 0.0]
+    scene = js.scene_from_dict(data)
+    obs = dataclasses.replace(js.synthetic_observations(scene, JELLY_TRUTH, 100, 10), states=None)
+    whole = Stage("ensemble", 10)
+    assert _final_stage(scene, obs, ["ks"], js.FitSettings(segment_frames=5), whole, 4) == whole
+    up = np.array([0.0, 1.0, 0.0])  # the same motion 1 m up
+    lifted = dataclasses.replace(
+        obs, x=obs.x + up, initial_state=js.State(x=obs.initial_state.x + up, v=obs.initial_state.v)
+    )
+    assert _final_stage(scene, lifted, ["ks"], js.FitSettings(segment_frames=5), whole, 4) == Stage("free_shooting", 4)
