@@ -220,7 +220,7 @@ def test_long_horizon_strategies(strategy):
     experiment = js.load_experiment(ROOT / "fitting" / "chain.toml").replace(steps=3000, save_every=30)
     obs = experiment.observations()
     result = js.fit(experiment.scene, obs, ["ks", "kd"], {"ks": 2500.0, "kd": 2.0}, strategy=strategy)
-    assert len(result.stages) > 1 and result.stages[-1].frames == 100  # always ends on the whole horizon
+    assert len(result.stages) > 1 and result.stages[-1].frames == 100  # smooth: ends on the whole horizon
     assert max(result.relative_errors().values()) < 0.01
 
 

@@ -3,6 +3,7 @@ here, and a chaotic target whose final stage is cut to that horizon, checked aga
 misfit itself evaluated on a line of parameter values."""
 
 import dataclasses
+import importlib
 import tomllib
 from pathlib import Path
 
@@ -135,21 +136,82 @@ def test_the_final_stage_for_a_horizon():
     assert over_horizon(Stage("direct", 200), 89) == Stage("shooting", 66)  # 3 x 66, 2 frames left out
     assert over_horizon(whole, 136, recorded=False, segment_frames=10) == Stage("free_shooting", 10)
     assert over_horizon(whole, 6, recorded=False, segment_frames=10) == Stage("free_shooting", 6)
-    assert needs_horizon([Stage("shooting", 10), whole]) and needs_horizon([Stage("direct", 19), Stage("direct", 150)])
-    assert not needs_horizon([whole]) and not needs_horizon([Stage("free_shooting", 10)])
+    target = js.Observations(x=np.zeros((151, 1, 3)), particles=np.ones(1, int), save_every=1, initial_state=None)
+    assert needs_horizon([Stage("shooting", 10), whole], target)
+    assert needs_horizon([Stage("direct", 19), Stage("direct", 150)], target)
+    assert not needs_horizon([whole], target) and not needs_horizon([Stage("free_shooting", 10)], target)
+    recordings = dataclasses.make_dataclass("Recordings", [("shootable", bool, True)])()
+    assert not needs_horizon([Stage("shooting", 10), whole], recordings)  # takes are fitted whole
 
 
-def test_positions_on_the_ground_keep_the_whole_horizon():
+def test_free_shooting_ends_a_positions_only_fit_only_where_it_can():
     """From positions alone the final stage would be free shooting, which leaves out segments
-    that touch the ground: a jelly resting on the plane keeps its whole-horizon stage."""
+    that touch the ground and fits every particle's state per segment: a jelly resting on the
+    plane, or seen at one corner, keeps its whole-horizon stage."""
     data = tomllib.loads((SCENES / "jelly.toml").read_text())
     data["lattice"]["shape"], data["lattice"]["origin"] = [2, 2, 2], [0.0, 0.0, 0.0]
     scene = js.scene_from_dict(data)
     obs = dataclasses.replace(js.synthetic_observations(scene, JELLY_TRUTH, 100, 10), states=None)
     whole = Stage("ensemble", 10)
-    assert _final_stage(scene, obs, ["ks"], js.FitSettings(segment_frames=5), whole, 4) == whole
+    settings = js.FitSettings(segment_frames=5)
+    assert _final_stage(scene, [obs], ["ks"], settings, whole, 4) == whole
     up = np.array([0.0, 1.0, 0.0])  # the same motion 1 m up
     lifted = dataclasses.replace(
         obs, x=obs.x + up, initial_state=js.State(x=obs.initial_state.x + up, v=obs.initial_state.v)
     )
-    assert _final_stage(scene, lifted, ["ks"], js.FitSettings(segment_frames=5), whole, 4) == Stage("free_shooting", 4)
+    assert _final_stage(scene, [lifted], ["ks"], settings, whole, 4) == Stage("free_shooting", 4)
+    assert _final_stage(scene, [lifted, obs], ["ks"], settings, whole, 4) == whole  # one target on the ground
+    corner = js.synthetic_observations(scene, JELLY_TRUTH, 100, 10, particles=[0])
+    corner = dataclasses.replace(corner, x=corner.x + up, initial_state=lifted.initial_state)
+    assert _final_stage(scene, [corner], ["ks"], settings, whole, 4) == whole  # one of 8 particles seen
+
+
+def test_a_cloud_member_that_blows_up_ends_the_smooth_stretch(scenes):
+    obs = js.synthetic_observations(scenes["chain"], CHAIN_TRUTH, steps=400, save_every=40)
+    cloud = np.array([[0.1], [-0.1], [0.05], [-0.05], [14.0]])  # ks e^14 times too stiff: unstable at dt
+    horizon = smooth_horizon(scenes["chain"], obs, ["ks"], CHAIN_TRUTH, cloud=cloud, starts=1)
+    assert np.isinf(horizon.nonlinearity[0, -1]) and horizon.frames < horizon.total
+    still = smooth_horizon(scenes["chain"], obs, ["ks"], CHAIN_TRUTH, cloud=cloud[:4], starts=1)
+    assert still.whole  # the same cloud without it
+
+
+def test_a_fit_cut_to_its_horizon_resumes_with_the_saved_one(scenes, monkeypatch):
+    """The horizon is measured once; a fit resumed in its final stage reads it back and never
+    measures again (a new measurement at other values could cut other segments)."""
+    loop = importlib.import_module("jaxspring.fit.loop")  # (js.fit is the function)
+    scene = scenes["mass_spring"]
+    obs = js.synthetic_observations(scene, {"ks": 2.0}, steps=600, save_every=20)  # 30 frames
+    measured = js.Horizon(12, 30, 0.1, np.zeros(1, int), np.zeros((1, 30)))
+    monkeypatch.setattr(loop, "smooth_horizon", lambda *args, **kwargs: measured)
+    settings = js.FitSettings(strategy="shooting", segment_frames=5)
+    result = js.fit_batch(scene, [obs], ["ks"], [{"ks": 3.0}], settings, identify=False)[0]
+    assert result.stages == (Stage("shooting", 5), Stage("shooting", 10))  # 3 segments of at most 12 frames
+    assert abs(float(result.final["ks"]) / 2.0 - 1) < 1e-8
+
+    def unexpected(*args, **kwargs):
+        raise AssertionError("the horizon was measured again")
+
+    monkeypatch.setattr(loop, "smooth_horizon", unexpected)
+    theta = {"ks": jnp.log(jnp.array([2.2]))}
+    progress = FitProgress(1, 0, theta, None, [], {"ks": []}, [], horizon=12)  # at the final stage's start
+    resumed = js.fit_batch(scene, [obs], ["ks"], [{"ks": 3.0}], settings, progress=progress, identify=False)[0]
+    assert resumed.stages[-1] == Stage("shooting", 10)
+    assert abs(float(resumed.final["ks"]) / 2.0 - 1) < 1e-8
+
+
+def test_a_stage_that_fits_to_round_off_stops(scenes):
+    """Without noise the ensemble stage would shrink its cloud towards standard errors of
+    zero for all its iterations; a loss at round-off ends any stage."""
+    loop = importlib.import_module("jaxspring.fit.loop")
+    obs = js.synthetic_observations(scenes["chain"], CHAIN_TRUTH, steps=100, save_every=10)
+    floor = loop._round_off_loss(scenes["chain"], obs)
+    size = np.abs(obs.x).max()  # the chain reaches 19 m from its pin
+    assert floor == pytest.approx((64 * np.finfo(np.float64).eps * size) ** 2)
+    progress = FitProgress(1, 2, {}, None, [np.array([1.0]), np.array([floor / 2])], {}, [1, 1])
+    ensemble = {"done": np.zeros(1)}  # an ensemble stage that has not finished
+    assert loop._converged(progress, js.FitSettings(), True, ensemble, floor)
+    progress.loss[-1] = np.array([floor * 2])
+    assert not loop._converged(progress, js.FitSettings(), True, ensemble, floor)
+    progress.stage = 2  # a new stage: the last stage's loss does not count
+    progress.loss[-1] = np.array([floor / 2])
+    assert not loop._converged(progress, js.FitSettings(), True, ensemble, floor)

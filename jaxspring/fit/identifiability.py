@@ -219,7 +219,7 @@ def identifiability(
     for i, label in enumerate(labels):
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
-    if whole and (objective is None or segment):
+    if whole:  # residuals simulated here (the whole horizon, or its segments): check the quadratic model
         warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):

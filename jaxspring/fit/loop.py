@@ -18,7 +18,7 @@ from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
 from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
-from .horizon import describe_segments, describe_smoothness, smooth_horizon
+from .horizon import ROUND_OFF, describe_segments, describe_smoothness, smooth_horizon
 from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
@@ -182,10 +182,10 @@ def fit_batch(
     )
     segment_fits = None
     while not progress.done:
-        if progress.stage == len(stages) - 1 and needs_horizon(stages):
+        if progress.stage == len(stages) - 1 and needs_horizon(stages, reference):
             if progress.horizon is None:  # measured once, at the shooting answer; a resumed fit reads it
                 progress.horizon = _measured_horizon(scene, observations, names, settings, progress)
-            stages[-1] = _final_stage(scene, reference, names, settings, stages[-1], progress.horizon)
+            stages[-1] = _final_stage(scene, observations, names, settings, stages[-1], progress.horizon)
         stage = stages[progress.stage]
         if stage.kind == "free_shooting":  # Levenberg-Marquardt with the segments' states, per member
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
@@ -200,8 +200,8 @@ def fit_batch(
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)
-    if progress.horizon is not None and needs_horizon(stages):  # a finished fit read back
-        stages[-1] = _final_stage(scene, reference, names, settings, stages[-1], progress.horizon)
+    if progress.horizon is not None and needs_horizon(stages, reference):  # a finished fit read back
+        stages[-1] = _final_stage(scene, observations, names, settings, stages[-1], progress.horizon)
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
 
 
@@ -216,11 +216,19 @@ def _measured_horizon(scene, observations, names, settings, progress) -> int:
     return min(frames)
 
 
-def _final_stage(scene, reference, names, settings, stage: Stage, horizon: int) -> Stage:
-    """`over_horizon` for this target; free shooting only where some segment is clear of the ground."""
+def _final_stage(scene, observations: list, names, settings, stage: Stage, horizon: int) -> Stage:
+    """`over_horizon` for these targets. Free shooting (from positions alone) only where it
+    can do as well: every free particle observed (else each segment's unseen states would
+    be fitted from far fewer data than the whole horizon's known start determines them) and
+    every target with a segment clear of the ground (else there is nothing to fit); where
+    not, the whole horizon, which the report then calls not smooth."""
+    reference = observations[0]
     final = over_horizon(stage, horizon, reference.full, settings.segment_frames)
-    if final.kind == "free_shooting" and touching(scene, reference, final.frames, names).all():
-        return stage  # nothing for free shooting to fit: the whole horizon, reported as not smooth
+    if final.kind == "free_shooting":
+        free = np.nonzero(~np.asarray(scene.model.pinned))[0]
+        seen = all(np.isin(free, o.particles).all() for o in observations)
+        if not seen or any(touching(scene, o, final.frames, names).all() for o in observations):
+            return stage
     return final
 
 
@@ -271,7 +279,10 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
         max_memory,
     )
     final_stage = progress.stage == len(stages) - 1
-    while progress.iteration < settings.iterations and not _converged(progress, settings, final_stage, opt_state):
+    floor = _round_off_loss(scene, reference)
+    while progress.iteration < settings.iterations and not _converged(
+        progress, settings, final_stage, opt_state, floor
+    ):
         values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
         theta, opt_state, value = step(progress.theta, opt_state, data)
         progress.last_step = np.max(
@@ -294,8 +305,18 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
         progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
 
 
-def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state) -> bool:
-    """Whether every member has converged in the current stage (see FitSettings)."""
+def _round_off_loss(scene: Scene, reference: Observations) -> float:
+    """The loss [m^2] of positions that differ by round-off alone (ROUND_OFF units of the
+    scene's precision, of the target's size): below it there is nothing left to fit."""
+    size = float(np.nanmax(np.abs(np.asarray(reference.x, dtype=float)), initial=1.0))
+    return (ROUND_OFF * float(jnp.finfo(scene.model.mass.dtype).eps) * size) ** 2
+
+
+def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state, floor: float) -> bool:
+    """Whether every member has converged in the current stage (see FitSettings), or fits
+    its target to round-off (`floor`, the loss of positions that differ by round-off)."""
+    if progress.loss and progress.stage_of_iteration[-1] == progress.stage and np.all(progress.loss[-1] <= floor):
+        return True
     if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage says so itself
         return bool(np.all(np.asarray(opt_state["done"]) > 0))
     if progress.last_step is not None:

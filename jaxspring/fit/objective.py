@@ -76,6 +76,10 @@ def segment_misfit_function(scene: Scene, observations: Observations, names, seg
 
     The trailing frames that do not fill a segment are left out. Needs recorded states
     (`observations.full`).
+
+    Example:
+        >>> misfit = segment_misfit_function(scene, obs, ["ks"], 50)
+        >>> misfit({"ks": jnp.log(250.0)}, target_data(obs)).shape  # (5, 50, M, 3) for 250 frames
     """
     model, base = scene.model, scene.params
     particles = jnp.asarray(observations.particles)
@@ -124,6 +128,8 @@ def residual_function(scene: Scene, observations: Observations, names, values: d
     flat, unravel = ravel_pytree(theta)
     forward = dataclasses.replace(scene, model=scene.model.forward_mode())  # Jacobians are taken with jacfwd
     if segment:
+        if observations.states is None:
+            raise InputError("segment", "segments start from recorded states, and none were recorded", "omit segment")
         misfit = segment_misfit_function(forward, observations, names, segment)
     else:
         misfit = misfit_function(forward, observations, names, observations.frame_count - 1)

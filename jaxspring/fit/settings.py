@@ -185,12 +185,22 @@ def plan_stages(
     return stages
 
 
-def needs_horizon(stages: list[Stage]) -> bool:
+def needs_horizon(stages: list[Stage], observations: Observations) -> bool:
     """Whether the plan's final stage is to be fitted to the horizon its misfit stays smooth
     over (`over_horizon`): shorter stages came first (multiple shooting from recorded
     states, or a curriculum's shorter horizons), and the final stage still spans the whole
-    target from its initial state."""
-    return len(stages) > 1 and stages[0].kind in ("shooting", "direct") and stages[-1].kind in ("direct", "ensemble")
+    target from its initial state. Not for recordings (driven, each from its own start
+    state): they are fitted over their whole takes.
+
+    Example:
+        >>> needs_horizon([Stage("shooting", 10), Stage("ensemble", 250)], observations)  # True
+    """
+    return (
+        not getattr(observations, "shootable", False)
+        and len(stages) > 1
+        and stages[0].kind in ("shooting", "direct")
+        and stages[-1].kind in ("direct", "ensemble")
+    )
 
 
 def over_horizon(stage: Stage, horizon: int, recorded: bool = True, segment_frames: int = 10) -> Stage:
@@ -199,7 +209,11 @@ def over_horizon(stage: Stage, horizon: int, recorded: bool = True, segment_fram
     segments of at most `horizon` frames (the optimiser on a misfit smooth at the measured
     scale; fewer trailing frames left out than there are segments), and from positions
     alone multiple shooting with fitted segment states ("free_shooting", segments of
-    `segment_frames` frames, or `horizon` if shorter)."""
+    `segment_frames` frames, or `horizon` if shorter).
+
+    Example:
+        >>> over_horizon(Stage("ensemble", 250), 62)  # Stage("shooting", 50): 5 segments
+    """
     total = stage.frames
     if horizon >= total:
         return stage
