@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring.fit.horizon import smooth_horizon
-from jaxspring.fit.loop import _final_stage
+from jaxspring.fit.horizon import horizon_stage, round_off_loss, smooth_horizon
 from jaxspring.fit.objective import loss_function, target_data
 from jaxspring.fit.results import FitProgress
 from jaxspring.fit.settings import Stage, needs_horizon, over_horizon
@@ -154,16 +153,16 @@ def test_free_shooting_ends_a_positions_only_fit_only_where_it_can():
     obs = dataclasses.replace(js.synthetic_observations(scene, JELLY_TRUTH, 100, 10), states=None)
     whole = Stage("ensemble", 10)
     settings = js.FitSettings(segment_frames=5)
-    assert _final_stage(scene, [obs], ["ks"], settings, whole, 4) == whole
+    assert horizon_stage(scene, [obs], ["ks"], settings, whole, 4) == whole
     up = np.array([0.0, 1.0, 0.0])  # the same motion 1 m up
     lifted = dataclasses.replace(
         obs, x=obs.x + up, initial_state=js.State(x=obs.initial_state.x + up, v=obs.initial_state.v)
     )
-    assert _final_stage(scene, [lifted], ["ks"], settings, whole, 4) == Stage("free_shooting", 4)
-    assert _final_stage(scene, [lifted, obs], ["ks"], settings, whole, 4) == whole  # one target on the ground
+    assert horizon_stage(scene, [lifted], ["ks"], settings, whole, 4) == Stage("free_shooting", 4)
+    assert horizon_stage(scene, [lifted, obs], ["ks"], settings, whole, 4) == whole  # one target on the ground
     corner = js.synthetic_observations(scene, JELLY_TRUTH, 100, 10, particles=[0])
     corner = dataclasses.replace(corner, x=corner.x + up, initial_state=lifted.initial_state)
-    assert _final_stage(scene, [corner], ["ks"], settings, whole, 4) == whole  # one of 8 particles seen
+    assert horizon_stage(scene, [corner], ["ks"], settings, whole, 4) == whole  # one of 8 particles seen
 
 
 def test_a_cloud_member_that_blows_up_ends_the_smooth_stretch(scenes):
@@ -178,7 +177,6 @@ def test_a_cloud_member_that_blows_up_ends_the_smooth_stretch(scenes):
 def test_a_fit_cut_to_its_horizon_resumes_with_the_saved_one(scenes, monkeypatch):
     """The horizon is measured once; a fit resumed in its final stage reads it back and never
     measures again (a new measurement at other values could cut other segments)."""
-    loop = importlib.import_module("jaxspring.fit.loop")  # (js.fit is the function)
     scene = scenes["mass_spring"]
     obs = js.synthetic_observations(scene, {"ks": 2.0}, steps=600, save_every=20)  # 30 frames
     settings = js.FitSettings(strategy="shooting", segment_frames=5)
@@ -186,7 +184,7 @@ def test_a_fit_cut_to_its_horizon_resumes_with_the_saved_one(scenes, monkeypatch
     def unexpected(*args, **kwargs):
         raise AssertionError("the horizon was measured again")
 
-    monkeypatch.setattr(loop, "smooth_horizon", unexpected)
+    monkeypatch.setattr(importlib.import_module("jaxspring.fit.horizon"), "smooth_horizon", unexpected)
     theta = {"ks": jnp.log(jnp.array([2.2]))}
     progress = FitProgress(1, 0, theta, None, [], {"ks": []}, [], horizon=12)  # at the final stage's start
     resumed = js.fit_batch(scene, [obs], ["ks"], [{"ks": 3.0}], settings, progress=progress, identify=False)[0]
@@ -199,7 +197,7 @@ def test_a_stage_that_fits_to_round_off_stops(scenes):
     zero for all its iterations; a loss at round-off ends any stage."""
     loop = importlib.import_module("jaxspring.fit.loop")
     obs = js.synthetic_observations(scenes["chain"], CHAIN_TRUTH, steps=100, save_every=10)
-    floor = loop._round_off_loss(scenes["chain"], obs)
+    floor = round_off_loss(scenes["chain"], obs)
     size = np.abs(obs.x).max()  # the chain reaches 19 m from its pin
     assert floor == pytest.approx((64 * np.finfo(np.float64).eps * size) ** 2)
     progress = FitProgress(1, 2, {}, None, [np.array([1.0]), np.array([floor / 2])], {}, [1, 1])

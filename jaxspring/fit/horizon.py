@@ -30,6 +30,8 @@ from ..sim.rollout import rollout
 from ..sim.scene import Scene
 from ..sim.state import State
 from .observations import Observations
+from .settings import FitSettings, Stage, over_horizon
+from .shooting import touching
 
 NONLINEARITY_LIMIT = 0.5
 """Largest nonlinearity (the module's docstring) at which a stretch still counts as smooth:
@@ -73,6 +75,17 @@ class Horizon:
     def describe(self) -> str:
         """The finding in words, for the fit report."""
         return describe_smoothness(self.frames, self.total, self.spread)
+
+
+def round_off_loss(scene: Scene, observations: Observations) -> float:
+    """The loss [m^2] of positions that differ by round-off alone (`ROUND_OFF` units of the
+    scene's precision, of the target's size): a stage that reaches it has nothing left to fit.
+
+    Example:
+        >>> round_off_loss(scene, obs)  # about 1e-26 m^2 for a float64 jelly
+    """
+    size = float(np.nanmax(np.abs(np.asarray(observations.x, dtype=float)), initial=1.0))
+    return (ROUND_OFF * float(jnp.finfo(scene.model.mass.dtype).eps) * size) ** 2
 
 
 def describe_smoothness(frames: int, total: int, spread: float) -> str:
@@ -195,3 +208,39 @@ def smooth_horizon(
         if beyond.size:
             frames = min(frames, max(int(beyond[0]), 1))
     return Horizon(frames=int(frames), total=total, spread=float(spread), starts=first, nonlinearity=nonlinearity)
+
+
+def measure_horizon(scene: Scene, observations: list, names, spread: float, theta: dict) -> int:
+    """The frames [int] over which every member's misfit stays smooth at `spread`, measured
+    at its values (`theta`: name -> log values, (B, ...); `observations`: one target, or one
+    per member).
+
+    Example:
+        >>> measure_horizon(scene, [obs], ["ks"], 0.1, {"ks": jnp.log(jnp.array([250.0]))})
+    """
+    frames = []
+    for member in range(np.shape(theta[names[0]])[0]):
+        values = {n: np.exp(np.asarray(theta[n][member], dtype=float)) for n in names}
+        target = observations[member if len(observations) > 1 else 0]
+        frames.append(smooth_horizon(scene, target, names, values, spread=spread).frames)
+    return min(frames)
+
+
+def horizon_stage(scene: Scene, observations: list, names, settings: FitSettings, stage: Stage, horizon: int) -> Stage:
+    """A plan's final `stage` fitted to a measured `horizon` [frames] (`over_horizon`) for
+    these targets. Free shooting (from positions alone) only where it can do as well: every
+    free particle observed (else each segment's unseen states would be fitted from far fewer
+    data than the whole horizon's known start determines them) and every target with a
+    segment clear of the ground (else there is nothing to fit); where not, the whole
+    horizon, which the report then calls not smooth.
+
+    Example:
+        >>> horizon_stage(scene, [obs], ["ks"], js.FitSettings(), Stage("ensemble", 250), 62)
+    """
+    final = over_horizon(stage, horizon, observations[0].full, settings.segment_frames)
+    if final.kind == "free_shooting":
+        free = np.nonzero(~np.asarray(scene.model.pinned))[0]
+        seen = all(np.isin(free, o.particles).all() for o in observations)
+        if not seen or any(touching(scene, o, final.frames, names).all() for o in observations):
+            return stage
+    return final

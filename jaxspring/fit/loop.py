@@ -18,15 +18,15 @@ from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
 from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
-from .horizon import ROUND_OFF, describe_segments, describe_smoothness, smooth_horizon
+from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
 from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
-from .settings import FitSettings, Stage, needs_horizon, over_horizon, plan_stages
-from .shooting import describe, fit_segments, free_shooting_stage, touching
+from .settings import FitSettings, Stage, needs_horizon, plan_stages
+from .shooting import describe, fit_segments, free_shooting_stage
 
 
 def _optimizer(settings: FitSettings):
@@ -184,8 +184,8 @@ def fit_batch(
     while not progress.done:
         if progress.stage == len(stages) - 1 and needs_horizon(stages, reference):
             if progress.horizon is None:  # measured once, at the shooting answer; a resumed fit reads it
-                progress.horizon = _measured_horizon(scene, observations, names, settings, progress)
-            stages[-1] = _final_stage(scene, observations, names, settings, stages[-1], progress.horizon)
+                progress.horizon = measure_horizon(scene, observations, names, settings.horizon_spread, progress.theta)
+            stages[-1] = horizon_stage(scene, observations, names, settings, stages[-1], progress.horizon)
         stage = stages[progress.stage]
         if stage.kind == "free_shooting":  # Levenberg-Marquardt with the segments' states, per member
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
@@ -201,35 +201,8 @@ def fit_batch(
         if on_iteration:
             on_iteration(progress, stages)
     if progress.horizon is not None and needs_horizon(stages, reference):  # a finished fit read back
-        stages[-1] = _final_stage(scene, observations, names, settings, stages[-1], progress.horizon)
+        stages[-1] = horizon_stage(scene, observations, names, settings, stages[-1], progress.horizon)
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
-
-
-def _measured_horizon(scene, observations, names, settings, progress) -> int:
-    """The frames over which every member's misfit stays smooth at `settings.horizon_spread`,
-    measured at its current values (`smooth_horizon`)."""
-    frames = []
-    for member in range(np.shape(progress.theta[names[0]])[0]):
-        values = {n: np.exp(np.asarray(progress.theta[n][member], dtype=float)) for n in names}
-        obs = observations[member if len(observations) > 1 else 0]
-        frames.append(smooth_horizon(scene, obs, names, values, spread=settings.horizon_spread).frames)
-    return min(frames)
-
-
-def _final_stage(scene, observations: list, names, settings, stage: Stage, horizon: int) -> Stage:
-    """`over_horizon` for these targets. Free shooting (from positions alone) only where it
-    can do as well: every free particle observed (else each segment's unseen states would
-    be fitted from far fewer data than the whole horizon's known start determines them) and
-    every target with a segment clear of the ground (else there is nothing to fit); where
-    not, the whole horizon, which the report then calls not smooth."""
-    reference = observations[0]
-    final = over_horizon(stage, horizon, reference.full, settings.segment_frames)
-    if final.kind == "free_shooting":
-        free = np.nonzero(~np.asarray(scene.model.pinned))[0]
-        seen = all(np.isin(free, o.particles).all() for o in observations)
-        if not seen or any(touching(scene, o, final.frames, names).all() for o in observations):
-            return stage
-    return final
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,7 +252,7 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
         max_memory,
     )
     final_stage = progress.stage == len(stages) - 1
-    floor = _round_off_loss(scene, reference)
+    floor = round_off_loss(scene, reference)
     while progress.iteration < settings.iterations and not _converged(
         progress, settings, final_stage, opt_state, floor
     ):
@@ -303,13 +276,6 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
             on_iteration(progress, stages)
     if keep_best_of_stage(progress, names, step, opt_state, data):
         progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
-
-
-def _round_off_loss(scene: Scene, reference: Observations) -> float:
-    """The loss [m^2] of positions that differ by round-off alone (ROUND_OFF units of the
-    scene's precision, of the target's size): below it there is nothing left to fit."""
-    size = float(np.nanmax(np.abs(np.asarray(reference.x, dtype=float)), initial=1.0))
-    return (ROUND_OFF * float(jnp.finfo(scene.model.mass.dtype).eps) * size) ** 2
 
 
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state, floor: float) -> bool:
