@@ -1,6 +1,7 @@
 """Parameter identification: recovery on every fitting/ experiment, uncertainty, batches, the CLI, resume."""
 
 import copy
+import importlib.util
 import signal
 import subprocess
 import sys
@@ -21,6 +22,24 @@ EXPERIMENTS = sorted(p.stem for p in (ROOT / "fitting").glob("*.toml"))
 
 def test_every_seed_scene_has_an_experiment():
     assert EXPERIMENTS == ["chain", "cloth", "jelly", "mass_spring"]
+
+
+def test_success_map_cases_are_experiments_with_a_possible_draw():
+    """Each success-map case is an experiment file (users run any case with `jaxspring fit`): its
+    truth lies in the range the benchmark draws from, its start is 1/3-3x away, and only the
+    `_velocities` cases record velocities."""
+    spec = importlib.util.spec_from_file_location("success_map", ROOT / "benchmarks" / "success_map.py")
+    success_map = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(success_map)
+    cases = ROOT / "fitting" / "cases"
+    assert sorted(success_map.RANGES) == sorted(p.stem for p in cases.glob("*.toml"))
+    for name, ranges in success_map.RANGES.items():
+        experiment = js.load_experiment(cases / f"{name}.toml")
+        assert sorted(experiment.params) == sorted(ranges), name
+        assert experiment.velocities == name.endswith("_velocities"), name
+        for n, (low, high) in ranges.items():
+            assert low <= experiment.true_values[n] <= high, (name, n)
+            assert 1 / 3 <= experiment.init[n] / experiment.true_values[n] <= 3, (name, n)
 
 
 # With 1% observation noise the cloth's spring damping is not determined by its positions:

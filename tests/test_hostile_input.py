@@ -43,6 +43,12 @@ def test_experiment_target_file_reads_a_float32_file(float32_recording):
     assert experiment.observations().truth_label == "file"
     declared = experiment.replace(true_values={"ks": 612.0}).observations()  # [target.true] with a file
     assert declared.truth_label == "true" and float(declared.truth["ks"]) == 612.0
+    (float32_recording / "positions.toml").write_text(
+        'scene = "chain"\n[target]\nfile = "rec.h5"\nvelocities = false\n[fit]\nparams = ["ks"]\n'
+    )  # positions only, as a camera records them: the same positions, no states to start segments from
+    positions = js.load_experiment(float32_recording / "positions.toml").observations()
+    assert positions.states is None and experiment.observations().states is not None
+    np.testing.assert_array_equal(positions.x, experiment.observations().x)
 
 
 def test_observations_take_the_fits_precision(float32_recording):

@@ -251,6 +251,7 @@ def test_fit_and_predict_recording_files(files, capsys):
         ({"driven = [0, 5]": "markers = [0, 1, 2]\ndriven = [0]"}, "3 particles but the recordings have 6"),
         ({'"ks.stretch", "cd"]': '"ks.twist", "cd"]', '"ks.stretch" = 300.0, ': ""}, "no parameter 'ks.twist'"),
         ({'loss = "mse"': "", "iterations = 15": 'iterations = 15\nloss = "l3"'}, "unknown loss"),
+        ({"start = 1": "start = 1\nvelocities = false"}, "recordings hold positions only"),
     ],
 )
 def test_bad_recording_experiments_fail_in_one_line_without_files(files, change, message, capsys, tmp_path):

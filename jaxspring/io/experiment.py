@@ -70,6 +70,7 @@ class Experiment:
     smooth: int = 0
     fit_start: bool = False
     fit_driven: bool = False
+    velocities: bool = True
     loss: str = "mse"
     huber_scale: float = 0.002
     evaluate: tuple = ()
@@ -87,10 +88,12 @@ class Experiment:
             if self.true_values:  # the experiment declares the truth
                 truth = {k: np.asarray(v) for k, v in self.true_values.items()}
                 observations = dataclasses.replace(observations, truth=truth, truth_label="true")
-            return observations
-        return synthetic_observations(
-            self.scene, self.true_values or {}, self.steps, self.save_every, self.noise, self.seed, self.particles
-        )
+        else:
+            observations = synthetic_observations(
+                self.scene, self.true_values or {}, self.steps, self.save_every, self.noise, self.seed, self.particles
+            )
+        # positions only, as a camera records them: no start states for multiple shooting
+        return observations if self.velocities else dataclasses.replace(observations, states=None)
 
     def recording_target(self, paths) -> RecordingTarget:
         """`paths` (recording files) prepared with this experiment's markers, driven and start."""
@@ -185,6 +188,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
     smooth = target.take("smooth", schema.count, default=0)
     fit_start = target.take("fit_start", schema.boolean, default=False)
     fit_driven = target.take("fit_driven", schema.boolean, default=False)
+    velocities = target.take("velocities", schema.boolean)
     true_table = target.table("true")
     true_values = None
     if true_table is not None:
@@ -197,6 +201,10 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         recordings = recording_paths(patterns, path.parent, "target.recordings")
     elif markers is not None or driven:
         raise InputError("target", "markers and driven need recordings", 'add recordings = ["takes/*.h5"]')
+    if velocities is not None and patterns is not None:
+        raise InputError(
+            "target.velocities", "applies to a file or synthetic target (recordings hold positions only)", "remove it"
+        )
     evaluate_table = top.table("evaluate")
     evaluate = ()
     if evaluate_table is not None:
@@ -270,6 +278,7 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         smooth=smooth,
         fit_start=fit_start,
         fit_driven=fit_driven,
+        velocities=True if velocities is None else velocities,
         loss=loss,
         huber_scale=huber_scale,
         evaluate=evaluate,
