@@ -44,6 +44,39 @@ def test_linear_blocks_reach_the_dense_least_squares_answer_and_its_covariance()
     assert solution.count == blocks * rows
 
 
+def test_a_bound_holds_its_value_and_the_rest_reach_the_least_squares_answer_given_it():
+    """p0 bounded above below its unconstrained answer: the answer has p0 on the bound and the
+    other unknowns at the dense least-squares answer with p0 held there."""
+    a, c, y = _linear_problem(seed=1)
+    blocks, rows, shared = a.shape
+    local = c.shape[-1]
+    dense = np.zeros((blocks * rows, shared + blocks * local))
+    for b in range(blocks):
+        dense[b * rows : (b + 1) * rows, :shared] = a[b]
+        dense[b * rows : (b + 1) * rows, shared + b * local : shared + (b + 1) * local] = c[b]
+    free = np.linalg.lstsq(dense, y.reshape(-1), rcond=None)[0]
+    bound = free[0] - 0.5
+    rest = np.linalg.lstsq(dense[:, 1:], y.reshape(-1) - dense[:, 0] * bound, rcond=None)[0]
+
+    def residual(p, s_b, d):
+        return d["a"] @ p + d["c"] @ s_b - d["y"]
+
+    data = {"a": jnp.asarray(a), "c": jnp.asarray(c), "y": jnp.asarray(y)}
+    high = np.full(shared, np.inf)
+    high[0] = bound
+    solution = block_levenberg_marquardt(
+        residual,
+        np.full(shared, bound - 1),
+        np.ones((blocks, local)),
+        data,
+        iterations=50,
+        bounds=(np.full(shared, -np.inf), high),
+    )
+    assert solution.p[0] == pytest.approx(bound, abs=1e-12)
+    np.testing.assert_allclose(solution.p[1:], rest[: shared - 1], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(solution.s.reshape(-1), rest[shared - 1 :], rtol=1e-7, atol=1e-9)
+
+
 def test_a_nonlinear_problem_steps_only_downhill_to_its_exact_answer():
     """r_b = exp(p0 t) + p1 + s_b t^2 - data from p = (-0.7, 0.3), s = (0.1, -0.2, 0.4): noise-free,
     so the answer is exact; every accepted step lowers the cost."""

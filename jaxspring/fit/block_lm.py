@@ -137,9 +137,11 @@ def _chain_solve(c, e, rhs):
     return x
 
 
-def _solve(pieces, damping, links=None):
+def _solve(pieces, damping, links=None, low=None, high=None):
     """The damped system's step (dp, ds) by the Schur complement; and the reduced matrix.
-    `links`: (B,) which blocks link to the next (linked blocks)."""
+    `links`: (B,) which blocks link to the next (linked blocks); `low`, `high`: (P,) how far p
+    may move (a value that would pass its bound stops there, the others are solved again
+    given it, and ds is the blocks' best answer to that dp)."""
     _, a, b, c, gp, gs = pieces[:6]
     if len(pieces) > 6:  # linked blocks: block b + 1 also sees the defect of block b's link
         e, f, defect = pieces[6:]
@@ -162,12 +164,17 @@ def _solve(pieces, damping, links=None):
     damped = reduced + damping * jnp.diag(jnp.maximum(jnp.diag(corner), 1e-300))
     rhs = gp.sum(axis=0) - jnp.einsum("bpl,bl->p", b, c_inv_gs)
     dp = -jnp.linalg.lstsq(damped, rhs, rcond=1e-14)[0] if size else jnp.zeros(0)
+    if low is not None:  # values at their bounds held there; the others solved again given them
+        held = (dp <= low) | (dp >= high)
+        fixed = jnp.where(held, jnp.clip(dp, low, high), 0.0)
+        free = jnp.where(held[:, None] | held[None, :], 0.0, damped) + jnp.diag(held.astype(damped.dtype))
+        dp = fixed - jnp.linalg.lstsq(free, jnp.where(held, 0.0, rhs + damped @ fixed), rcond=1e-14)[0]
     ds = -(c_inv_gs + jnp.einsum("blp,p->bl", c_inv_bt, dp))
     return dp, ds, reduced
 
 
 def block_levenberg_marquardt(
-    residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12, linked=False
+    residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12, linked=False, bounds=None
 ) -> BlockSolution:
     """Minimise sum_b |residual(p, s_b, data_b)|^2 (`linked`: residual returns (r_b, link_b), and
     the cost adds sum_{b < B-1} |link_b - s_{b+1}|^2; a (B,) mask `linked` keeps only the
@@ -182,7 +189,8 @@ def block_levenberg_marquardt(
     then p is within about sqrt(NOISE_FRACTION) standard errors of the minimum, and
     further steps (linear convergence when the residuals are noise, not zero) move it
     by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
-    first value (exact data, fitted to round-off)."""
+    first value (exact data, fitted to round-off). `bounds`: (low, high), each (P,), a box p
+    stays in (each step clipped to it)."""
     p, s = jnp.asarray(p), jnp.asarray(s)
     links = _links(linked, s.shape[0])
     linked = bool(np.ndim(linked)) or bool(linked)
@@ -190,7 +198,13 @@ def block_levenberg_marquardt(
     on = jnp.asarray(links)
     pieces_fn = lambda p, s, d: pieces_of(p, s, d, on)  # noqa: E731
     cost_fn = lambda p, s, d: cost_of(p, s, d, on)  # noqa: E731
-    solve = lambda pieces, damping: solve_of(pieces, damping, on.astype(s.dtype))  # noqa: E731
+    low, high = (None, None) if bounds is None else (jnp.asarray(b, dtype=p.dtype) for b in bounds)
+
+    def solve(pieces, damping, p):
+        if low is None:
+            return solve_of(pieces, damping, on.astype(s.dtype))
+        return solve_of(pieces, damping, on.astype(s.dtype), low - p, high - p)
+
     pieces = pieces_fn(p, s, data)
     cost = initial_cost = float(pieces[0].sum())
     first = jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data)))
@@ -201,7 +215,7 @@ def block_levenberg_marquardt(
     for _ in range(iterations):
         accepted = False
         for _ in range(12):
-            dp, ds, _ = solve(pieces, damping)
+            dp, ds, _ = solve(pieces, damping, p)
             new_cost = float(cost_fn(p + dp, s + ds, data))
             if np.isfinite(new_cost) and new_cost < cost:
                 accepted = True
@@ -223,5 +237,5 @@ def block_levenberg_marquardt(
             break
         if improvement <= tolerance**2 or below_noise or new_cost <= ROUND_OFF * initial_cost:
             break
-    _, _, reduced = solve(pieces, 0.0)
+    _, _, reduced = solve(pieces, 0.0, p)
     return BlockSolution(np.asarray(p), np.asarray(s), history, cost, np.asarray(reduced), count * s.shape[0])

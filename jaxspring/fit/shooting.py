@@ -42,6 +42,14 @@ the 10 s chain with 1% noise at weight 100 alone). Exact data stop raising as so
 raise moves no parameter; with noise every weight runs (`weights_for`: fewer in float32)."""
 
 
+LIGHT_RANGE = 10.0
+"""Until the last continuity weight, every value stays within this factor of its start. At a
+light weight the states may take up what a weakly determined parameter does (with noise,
+the chain's spring damping over 0.2 s segments): unbounded, its log value drifts towards
+minus infinity, where no later weight can bring it back (measured: kd 100% off on a 10 s
+chain with 1% noise, from a start 2x off). The last weight's solve is unbounded."""
+
+
 def weights_for(dtype) -> tuple:
     """The weights of `CONTINUITY_WEIGHTS` the dtype can carry: at weight w the data's share of
     the states' normal matrix is about 1 / w, lost to round-off once w eps nears 1, so
@@ -267,10 +275,19 @@ def fit_segments(
         raise InputError("segment_frames", "must be >= 1", "set e.g. segment_frames = 10")
     problem = shooting_problem(scene, observations, names, values, segment_frames, CONTINUITY_WEIGHTS[0])
     p, guess, history = problem.p0, None, []
-    for stage, weight in enumerate(weights_for(problem.s0.dtype)):
+    weights = weights_for(problem.s0.dtype)
+    light = (problem.p0 - np.log(LIGHT_RANGE), problem.p0 + np.log(LIGHT_RANGE))
+    for stage, weight in enumerate(weights):
         data = problem.restart(guess, weight) if stage else problem.data
         solution = block_levenberg_marquardt(
-            problem.residual, p, problem.s0, data, iterations=iterations, tolerance=tolerance, linked=problem.links
+            problem.residual,
+            p,
+            problem.s0,
+            data,
+            iterations=iterations,
+            tolerance=tolerance,
+            linked=problem.links,
+            bounds=light if stage < len(weights) - 1 else None,
         )
         history += [(cost / problem.count, _values(problem.unravel, p)) for cost, p in solution.history]
         moved, p = np.max(np.abs(solution.p - p), initial=0.0), solution.p
