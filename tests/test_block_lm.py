@@ -18,16 +18,24 @@ def _linear_problem(blocks=4, shared=3, local=5, rows=30, seed=0):
     return a, c, y
 
 
-def test_linear_blocks_reach_the_dense_least_squares_answer_and_its_covariance():
-    """r_b = A_b p + C_b s_b - y_b: the answer and the p-block of (J^T J)^-1 of the stacked
-    (block-arrow) system, solved densely with NumPy."""
-    a, c, y = _linear_problem()
+def _dense(a, c):
+    """The stacked system's matrix: block b's rows see p (A_b) and their own s_b (C_b)."""
     blocks, rows, shared = a.shape
     local = c.shape[-1]
     dense = np.zeros((blocks * rows, shared + blocks * local))
     for b in range(blocks):
         dense[b * rows : (b + 1) * rows, :shared] = a[b]
         dense[b * rows : (b + 1) * rows, shared + b * local : shared + (b + 1) * local] = c[b]
+    return dense
+
+
+def test_linear_blocks_reach_the_dense_least_squares_answer_and_its_covariance():
+    """r_b = A_b p + C_b s_b - y_b: the answer and the p-block of (J^T J)^-1 of the stacked
+    (block-arrow) system, solved densely with NumPy."""
+    a, c, y = _linear_problem()
+    blocks, rows, shared = a.shape
+    local = c.shape[-1]
+    dense = _dense(a, c)
     answer = np.linalg.lstsq(dense, y.reshape(-1), rcond=None)[0]
     covariance = np.linalg.inv(dense.T @ dense)[:shared, :shared]
 
@@ -50,10 +58,7 @@ def test_a_bound_holds_its_value_and_the_rest_reach_the_least_squares_answer_giv
     a, c, y = _linear_problem(seed=1)
     blocks, rows, shared = a.shape
     local = c.shape[-1]
-    dense = np.zeros((blocks * rows, shared + blocks * local))
-    for b in range(blocks):
-        dense[b * rows : (b + 1) * rows, :shared] = a[b]
-        dense[b * rows : (b + 1) * rows, shared + b * local : shared + (b + 1) * local] = c[b]
+    dense = _dense(a, c)
     free = np.linalg.lstsq(dense, y.reshape(-1), rcond=None)[0]
     bound = free[0] - 0.5
     rest = np.linalg.lstsq(dense[:, 1:], y.reshape(-1) - dense[:, 0] * bound, rcond=None)[0]
