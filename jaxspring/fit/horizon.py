@@ -232,18 +232,12 @@ def horizon_stage(scene: Scene, observations: list, names, settings: FitSettings
     free particle observed (else each segment's unseen states would be fitted from far fewer
     data than the whole horizon's known start determines them) and every target with a
     segment clear of the ground (else there is nothing to fit); where not, the whole
-    horizon, which the report then calls not smooth. A whole horizon that is smooth is fitted by
-    the optimiser (`direct`) unless the settings ask for the ensemble (`ensemble = "ensemble"`).
+    horizon, which the report then calls not smooth.
 
     Example:
         >>> horizon_stage(scene, [obs], ["ks"], js.FitSettings(), Stage("ensemble", 250), 62)
     """
     final = over_horizon(stage, horizon, observations[0].full, settings.segment_frames)
-    if final.kind == "ensemble" and settings.ensemble == "auto":
-        # Smooth over all of it at the measured spread: the ensemble's wider cloud would smooth
-        # what needs no smoothing and shift the minimum (measured on a 1 s jelly: from the
-        # truth to 1e-7, its 30% cloud walked to kd 50% off in 100 iterations). The optimiser.
-        return Stage("direct", final.frames)
     if final.kind == "free_shooting":
         free = np.nonzero(~np.asarray(scene.model.pinned))[0]
         seen = all(np.isin(free, o.particles).all() for o in observations)
