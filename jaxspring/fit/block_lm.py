@@ -190,7 +190,7 @@ def block_levenberg_marquardt(
     further steps (linear convergence when the residuals are noise, not zero) move it
     by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
     first value (exact data, fitted to round-off). `bounds`: (low, high), each (P,), a box p
-    stays in (each step clipped to it)."""
+    stays in (a value reaching its bound is held there while the others move)."""
     p, s = jnp.asarray(p), jnp.asarray(s)
     links = _links(linked, s.shape[0])
     linked = bool(np.ndim(linked)) or bool(linked)
