@@ -154,7 +154,9 @@ def test_free_shooting_ends_a_positions_only_fit_only_where_it_can():
     whole = Stage("ensemble", 10)
     settings = js.FitSettings(segment_frames=5)
     assert horizon_stage(scene, [obs], ["ks"], settings, whole, 4) == whole
-    assert horizon_stage(scene, [obs], ["ks"], settings, whole, 10) == whole  # smooth throughout
+    # smooth throughout: the whole horizon, its first cloud no wider than the one measured smooth
+    spread = min(settings.horizon_spread, settings.ensemble_spread)
+    assert horizon_stage(scene, [obs], ["ks"], settings, whole, 10) == Stage("ensemble", 10, spread)
     up = np.array([0.0, 1.0, 0.0])  # the same motion 1 m up
     lifted = dataclasses.replace(
         obs, x=obs.x + up, initial_state=js.State(x=obs.initial_state.x + up, v=obs.initial_state.v)

@@ -24,7 +24,9 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
     smoothed loss falls). When the steps become small against the spread (or stop
     being accepted), the spread is halved, in the shape of the parameters' standard
     errors s (J^T J)^-1/2, and the search goes on; the stage ends once the spread is
-    the standard errors. Every step returns the plain loss at
+    the standard errors. The first cloud is at most 3 standard errors wide (measured by
+    the first evaluation, at the stage's start spread), so a start that already explains
+    the data is not smoothed away from. Every step returns the plain loss at
     the centre, so the history shows the loss the stage minimises in the end.
     """
     members = settings.ensemble_members
@@ -33,6 +35,7 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
     half = np.random.default_rng(0).standard_normal((members // 2, size))
     cloud_points = jnp.asarray(np.concatenate([half, -half]), dtype=dtype)
     tiny = float(jnp.finfo(dtype).tiny)
+    start_spread = settings.ensemble_spread if stage.spread is None else stage.spread
 
     misfit = misfit_function(scene, observations, names, stage.frames)
 
@@ -43,7 +46,7 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         eye = jnp.eye(size, dtype=dtype)
         zero = jnp.zeros((), dtype)
         return {
-            "spread": settings.ensemble_spread * eye,
+            "spread": start_spread * eye,
             "damping": jnp.asarray(1e-3, dtype),
             "fresh": zero + 1,  # the next step evaluates the centre with a new spread
             "done": zero,
@@ -88,8 +91,6 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
             "loss": chosen(r_centre @ r_centre / count, state["loss"]),
         }
         damping = jnp.where(accept, jnp.maximum(state["damping"] / 10, 1e-6), state["damping"] * 10)
-        relative = jnp.linalg.norm(jnp.linalg.solve(state["spread"], step))  # the step in units of the spread
-        level_end = ~fresh & ((relative <= 0.1) | (~accept & (damping >= 1e3)))  # small steps left, or none
         # The standard errors' square root s (J^T J)^-1/2 and the spread's axes measured in it.
         # A level halves the spread (in the standard errors' shape) until it is the standard
         # errors; where the cloud's residuals are linear in the parameters to 1% (the loss is
@@ -102,19 +103,34 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         posterior = (vectors * (noise / jnp.sqrt(eigenvalues))) @ vectors.T
         whiten = (vectors * (jnp.sqrt(eigenvalues) / noise)) @ vectors.T
         sizes = jnp.linalg.svd(whiten @ state["spread"], compute_uv=False)
+        # A level ends when the steps left are small against the spread, or below a tenth of
+        # a standard error (a flat valley: further steps move nothing the data determine),
+        # or when no step is accepted.
+        relative = jnp.linalg.norm(jnp.linalg.solve(state["spread"], step))
+        significant = jnp.linalg.norm(whiten @ step)
+        level_end = ~fresh & ((relative <= 0.1) | (significant <= 0.1) | (~accept & (damping >= 1e3)))
         fitted = offsets @ slopes
         nonlinear = jnp.sum(((r - mean) * weight[:, None] - fitted) ** 2) / jnp.maximum(jnp.sum(fitted**2), tiny)
         shrunk = posterior * jnp.where(nonlinear < 1e-2, 1.0, jnp.maximum(1.0, sizes.min() / 2))
-        shrunk = shrunk * jnp.minimum(1.0, settings.ensemble_spread / jnp.linalg.norm(shrunk, 2))
+        shrunk = shrunk * jnp.minimum(1.0, start_spread / jnp.linalg.norm(shrunk, 2))
         stalled = jnp.linalg.norm(shrunk, 2) >= 0.9 * jnp.linalg.norm(state["spread"], 2)
         finished = level_end & ((sizes.max() <= 1.1) | stalled)
         failed_start = fresh & ~usable  # the cloud reaches unstable values: halve it and evaluate again
+        # The first cloud never spans more than 3 standard errors (where the truth plausibly
+        # lies) around a start that already explains the data that well: a wider cloud would
+        # smooth the loss over motions the data rule out, and its minimum need not be theirs
+        # (a 1 s jelly at its truth to 1e-9 was walked to kd 34% off by a 10% cloud). A start
+        # far off leaves a large misfit, hence large standard errors: its cloud stays as given.
+        plausible = 3.0 * posterior
+        narrower = jnp.linalg.norm(plausible, 2) < 0.5 * jnp.linalg.norm(state["spread"], 2)
+        first = fresh & usable & jnp.isinf(state["smoothed"]) & narrower
         spread = jnp.where(level_end & ~finished, shrunk, state["spread"])
         spread = jnp.where(failed_start, spread / 2, spread)
+        spread = jnp.where(first, plausible, spread)
         new.update(
             spread=spread,
             damping=jnp.where(level_end, jnp.asarray(1e-3, dtype), damping),
-            fresh=(level_end & ~finished) | failed_start,
+            fresh=(level_end & ~finished) | failed_start | first,
             done=finished | (state["done"] > 0),
         )
         new = {k: jnp.asarray(v, dtype) for k, v in new.items()}

@@ -238,6 +238,10 @@ def horizon_stage(scene: Scene, observations: list, names, settings: FitSettings
         >>> horizon_stage(scene, [obs], ["ks"], js.FitSettings(), Stage("ensemble", 250), 62)
     """
     final = over_horizon(stage, horizon, observations[0].full, settings.segment_frames)
+    if final is stage and stage.kind == "ensemble" and horizon >= stage.frames:
+        # the misfit was measured smooth at the horizon's spread: a wider cloud would only
+        # average over motions the answer is already known not to have
+        return dataclasses.replace(stage, spread=min(settings.horizon_spread, settings.ensemble_spread))
     if final.kind == "free_shooting":
         free = np.nonzero(~np.asarray(scene.model.pinned))[0]
         seen = all(np.isin(free, o.particles).all() for o in observations)

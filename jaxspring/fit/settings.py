@@ -128,11 +128,15 @@ class Stage:
     from recorded states), "free_shooting" (segments of `frames` frames from fitted start
     states, Levenberg-Marquardt) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
     A "gauss_newton" stage (the optional polish, after the others) shorter than the target
-    ran over segments from recorded states, as "shooting" does.
+    ran over segments from recorded states, as "shooting" does. `spread`: an ensemble
+    stage's initial cloud (standard deviation in log-parameter space) when not
+    `FitSettings.ensemble_spread`: the horizon's spread once the whole horizon was measured
+    smooth at it (`fit.horizon.horizon_stage`).
     """
 
     kind: str
     frames: int
+    spread: float | None = None
 
 
 def plan_stages(
