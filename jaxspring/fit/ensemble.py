@@ -24,7 +24,8 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
     smoothed loss falls). When the steps become small against the spread (or stop
     being accepted), the spread is halved, in the shape of the parameters' standard
     errors s (J^T J)^-1/2, and the search goes on; the stage ends once the spread is
-    the standard errors. The first cloud is at most 3 standard errors wide (measured by
+    the standard errors (or, for data explained to rounding, the square root of the dtype's
+    epsilon). The first cloud is at most 3 standard errors wide (measured by
     the first evaluation, at the stage's start spread), so a start that already explains
     the data is not smoothed away from. Every step returns the plain loss at
     the centre, so the history shows the loss the stage minimises in the end.
@@ -35,6 +36,10 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
     half = np.random.default_rng(0).standard_normal((members // 2, size))
     cloud_points = jnp.asarray(np.concatenate([half, -half]), dtype=dtype)
     tiny = float(jnp.finfo(dtype).tiny)
+    # The narrowest cloud whose residual differences rise above rounding: the square root of
+    # the dtype's epsilon, as for a finite difference. Standard errors below it (data
+    # explained to rounding) are not resolved: the stage ends at it.
+    floor = float(np.sqrt(jnp.finfo(dtype).eps))
     start_spread = settings.ensemble_spread if stage.spread is None else stage.spread
 
     misfit = misfit_function(scene, observations, names, stage.frames)
@@ -113,6 +118,7 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         nonlinear = jnp.sum(((r - mean) * weight[:, None] - fitted) ** 2) / jnp.maximum(jnp.sum(fitted**2), tiny)
         shrunk = posterior * jnp.where(nonlinear < 1e-2, 1.0, jnp.maximum(1.0, sizes.min() / 2))
         shrunk = shrunk * jnp.minimum(1.0, start_spread / jnp.linalg.norm(shrunk, 2))
+        shrunk = shrunk * jnp.maximum(1.0, floor / jnp.linalg.norm(shrunk, 2))
         stalled = jnp.linalg.norm(shrunk, 2) >= 0.9 * jnp.linalg.norm(state["spread"], 2)
         finished = level_end & ((sizes.max() <= 1.1) | stalled)
         failed_start = fresh & ~usable  # the cloud reaches unstable values: halve it and evaluate again
@@ -122,6 +128,7 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         # (a 1 s jelly at its truth to 1e-9 was walked to kd 34% off by a 10% cloud). A start
         # far off leaves a large misfit, hence large standard errors: its cloud stays as given.
         plausible = 3.0 * posterior
+        plausible = plausible * jnp.maximum(1.0, floor / jnp.linalg.norm(plausible, 2))
         narrower = jnp.linalg.norm(plausible, 2) < 0.5 * jnp.linalg.norm(state["spread"], 2)
         first = fresh & usable & jnp.isinf(state["smoothed"]) & narrower
         spread = jnp.where(level_end & ~finished, shrunk, state["spread"])
