@@ -117,6 +117,22 @@ def test_ensemble_stage_finds_the_least_squares_fit_of_a_smooth_loss():
     assert fits["ensemble"].final_loss <= fits["gradient"].final_loss * (1 + 1e-3)
 
 
+def test_ensemble_stage_started_near_an_exact_answer_finds_it_in_a_few_steps():
+    """A small spinning jelly landing over 0.5 s, exact data, a start 1e-8 from the truth: the
+    first cloud is a few standard errors wide, so the stage comes to the truth in a few
+    steps. (With the 30% default cloud it spent all 60 iterations and never moved: the
+    smoothed loss of motions the data rule out has its minimum elsewhere.)"""
+    experiment = js.load_experiment(ROOT / "fitting" / "cases" / "small_jelly_1s.toml").replace(steps=500)
+    truth = experiment.true_values
+    start = {n: truth[n] * (1 + 1e-8) for n in ("ks", "kd")}
+    settings = js.FitSettings(strategy="direct", ensemble="ensemble", iterations=60)
+    result = js.fit(experiment.scene, experiment.observations(), ["ks", "kd"], start, settings)
+    assert [s.kind for s in result.stages] == ["ensemble"]
+    assert result.iterations <= 15, result.iterations
+    for n, error in result.relative_errors().items():
+        assert abs(error) < 1e-10, (n, error)
+
+
 def test_ensemble_stage_resumes_exactly():
     """An ensemble stage interrupted mid-way continues from its saved state to the same numbers."""
     experiment = js.load_experiment(ROOT / "fitting" / "mass_spring.toml").replace(steps=1000, save_every=20)
@@ -167,6 +183,46 @@ def test_gauss_newton_standard_error_matches_hand_calculation():
     sigma2 = r @ r / (r.size - 1)
     expected = 20.0 * np.sqrt(sigma2 / (jac @ jac))
     assert float(report.standard_error["ks"]) == pytest.approx(expected, rel=1e-5)
+
+
+def test_standard_error_counts_the_noise_of_recorded_segment_starts():
+    """Segments from noisy recorded states: s^2 (J^T J)^-1 plus the starts' noise carried to the
+    answer, s_x^2 (J^T J)^-2 (J^T J_x)^2, both Jacobians by finite differences of rollouts."""
+    scene = js.scene_from_dict(
+        {
+            "dt": 0.001,
+            "physics": {"ks": 20.0, "kd": 0.3, "gravity": [0.0, 0.0, 0.0]},
+            "particles": {"x": [[0, 0, 0], [1.5, 0.2, 0]], "pinned": [0]},
+            "springs": {"pairs": [[0, 1]], "rest_length": [1.0]},
+        }
+    )
+    obs = js.synthetic_observations(scene, {"ks": 20.0}, steps=400, save_every=20, noise_relative=0.02, seed=3)
+    report = js.identifiability(scene, obs, ["ks"], {"ks": 20.0}, segment=5)  # 4 segments of 5 frames
+    states = np.asarray(obs.states.x)
+
+    def residuals(ks, starts):
+        out = []
+        for k, x0 in enumerate(starts):
+            start = js.State(x=x0, v=obs.states.v[5 * k])
+            x = js.rollout(scene.model, scene.params.replace(ks=ks), start, steps=100, save_every=20).x
+            out.append(np.asarray(x)[1:, obs.particles] - obs.x[5 * k + 1 : 5 * k + 6])
+        return np.concatenate(out).reshape(-1)
+
+    starts = states[0:20:5]
+    h = 1e-6
+    jac = (residuals(20.0 * np.exp(h), starts) - residuals(20.0 * np.exp(-h), starts)) / (2 * h)
+    columns = []
+    for k in range(4):
+        for axis in range(3):  # the free particle's start position; the pinned one is known
+            step = np.zeros_like(starts)
+            step[k, 1, axis] = h
+            columns.append((residuals(20.0, starts + step) - residuals(20.0, starts - step)) / (2 * h))
+    cross = jac @ np.stack(columns, axis=1)  # J^T J_x
+    r = residuals(20.0, starts)
+    plain = (r @ r / (r.size - 1)) / (jac @ jac)
+    extra = obs.noise_std**2 * (cross @ cross) / (jac @ jac) ** 2
+    assert extra > 0.1 * plain  # the starts' noise matters here
+    assert float(report.relative_standard_error["ks"]) == pytest.approx(np.sqrt(plain + extra), rel=1e-4)
 
 
 def test_warns_when_a_parameter_does_not_affect_the_data():
