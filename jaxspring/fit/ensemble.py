@@ -42,6 +42,9 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
     floor = float(np.sqrt(jnp.finfo(dtype).eps))
     start_spread = settings.ensemble_spread if stage.spread is None else stage.spread
 
+    def no_narrower_than_floor(spread):
+        return spread * jnp.maximum(1.0, floor / jnp.linalg.norm(spread, 2))
+
     misfit = misfit_function(scene, observations, names, stage.frames)
 
     def residuals(vector, data, extras):  # extras: theta's other entries (a fitted start), held
@@ -118,7 +121,7 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         nonlinear = jnp.sum(((r - mean) * weight[:, None] - fitted) ** 2) / jnp.maximum(jnp.sum(fitted**2), tiny)
         shrunk = posterior * jnp.where(nonlinear < 1e-2, 1.0, jnp.maximum(1.0, sizes.min() / 2))
         shrunk = shrunk * jnp.minimum(1.0, start_spread / jnp.linalg.norm(shrunk, 2))
-        shrunk = shrunk * jnp.maximum(1.0, floor / jnp.linalg.norm(shrunk, 2))
+        shrunk = no_narrower_than_floor(shrunk)
         stalled = jnp.linalg.norm(shrunk, 2) >= 0.9 * jnp.linalg.norm(state["spread"], 2)
         finished = level_end & ((sizes.max() <= 1.1) | stalled)
         failed_start = fresh & ~usable  # the cloud reaches unstable values: halve it and evaluate again
@@ -127,8 +130,7 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
         # smooth the loss over motions the data rule out, and its minimum need not be theirs
         # (a 1 s jelly at its truth to 1e-9 was walked to kd 34% off by a 10% cloud). A start
         # far off leaves a large misfit, hence large standard errors: its cloud stays as given.
-        plausible = 3.0 * posterior
-        plausible = plausible * jnp.maximum(1.0, floor / jnp.linalg.norm(plausible, 2))
+        plausible = no_narrower_than_floor(3.0 * posterior)
         narrower = jnp.linalg.norm(plausible, 2) < 0.5 * jnp.linalg.norm(state["spread"], 2)
         first = fresh & usable & jnp.isinf(state["smoothed"]) & narrower
         spread = jnp.where(level_end & ~finished, shrunk, state["spread"])

@@ -8,7 +8,6 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 
 from ..sim.scene import Scene
 from .objective import residual_function, segment_misfit_function, target_data
@@ -168,7 +167,7 @@ def identifiability(
     parameter is "not identifiable" when its diagonal of `normal` vanishes. A fit whose final
     stage ran over segments of `segment` frames from recorded states passes `segment`: the
     residuals are those segments', and the noise of the recorded start positions they begin
-    from counts in the standard errors too (`_start_noise_covariance`): a fit from noisy
+    from counts in the standard errors too (`_start_sensitivity`): a fit from noisy
     starts is biased as an errors-in-variables fit is, and says so by wider errors.
 
     Example:
@@ -205,9 +204,10 @@ def identifiability(
     inverse = (eigenvectors[:, visible] / eigenvalues[visible]) @ eigenvectors[:, visible].T
     covariance = sigma2 * inverse / np.outer(scale, scale)
     if segment and whole and isinstance(observations, Observations):  # starts from recorded, noisy states
-        covariance = covariance + _start_noise_covariance(
-            scene, observations, names, values, segment, jac, inverse / np.outer(scale, scale), sigma2
-        )
+        moved = _start_sensitivity(scene, observations, names, theta, segment, jac)
+        moved = (inverse / np.outer(scale, scale)) @ moved  # (J^T J)^-1 J^T J_x
+        noise2 = observations.noise_std**2 if observations.noise_std > 0 else sigma2
+        covariance = covariance + noise2 * moved @ moved.T
     log_se = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     blind = np.abs(eigenvectors[:, ~visible]).max(axis=1) > 1e-3 if (~visible).any() else np.zeros(dims, bool)
     log_se[dead | blind] = np.inf
@@ -239,29 +239,24 @@ def identifiability(
     return report if objective is None else dataclasses.replace(report, objective=objective)
 
 
-def _start_noise_covariance(scene, observations, names, values, segment, jac, normal_inverse, sigma2):
-    """The covariance of the log parameters that noise on the segments' recorded start positions
-    adds (errors in variables, to first order): a change dx of the starts moves the
-    least-squares answer by -(J^T J)^-1 J^T J_x dx, so noise of variance s_x^2 on them adds
-    s_x^2 (J^T J)^-1 (J^T J_x) (J^T J_x)^T (J^T J)^-1. J^T J_x takes one reverse pass per
-    parameter. s_x is the target's noise where known, else the residuals' standard deviation
-    (an upper bound: they carry the starts' noise too). Recorded velocities and pinned
-    particles count as exact."""
-    theta = {n: jnp.log(jnp.asarray(values[n], dtype=float)) for n in names}
-    flat, unravel = ravel_pytree(theta)
+def _start_sensitivity(scene, observations, names, theta, segment, jac):
+    """J^T J_x, (P, starts' free coordinates): how the segments' recorded start positions move
+    the normal equations' right-hand side, one reverse pass per parameter. Errors in variables
+    to first order: a change dx of the starts moves the least-squares answer by
+    -(J^T J)^-1 J^T J_x dx, so noise of variance s_x^2 on them adds
+    s_x^2 (J^T J)^-1 (J^T J_x) (J^T J_x)^T (J^T J)^-1 to the covariance; s_x is the target's
+    noise where known, else the residuals' standard deviation (an upper bound: they carry the
+    starts' noise too). Recorded velocities and pinned particles count as exact."""
     misfit = segment_misfit_function(scene, observations, names, segment)
     data = target_data(observations)
 
     def of_starts(states_x):
-        return misfit(unravel(flat), {**data, "states_x": states_x}).reshape(-1)
+        return misfit(theta, {**data, "states_x": states_x}).reshape(-1)
 
     _, pullback = jax.vjp(of_starts, data["states_x"])
     dtype = data["states_x"].dtype
     free = ~np.asarray(scene.model.pinned)  # pinned particles' positions are known
-    cross = np.stack([np.asarray(pullback(jnp.asarray(column, dtype))[0])[:, free].reshape(-1) for column in jac.T])
-    noise2 = observations.noise_std**2 if observations.noise_std > 0 else sigma2
-    moved = normal_inverse @ cross  # (P, starts' coordinates)
-    return noise2 * moved @ moved.T
+    return np.stack([np.asarray(pullback(jnp.asarray(column, dtype))[0])[:, free].reshape(-1) for column in jac.T])
 
 
 def _roughness_warnings(residuals, flat, r, jac, log_se, labels) -> list[str]:
