@@ -110,8 +110,13 @@ def read_rows(path: Path) -> list[dict]:
     return rows
 
 
+def draw_order(row: dict) -> tuple:
+    """Rows sort by case (in RANGES' order), noise, then seed."""
+    return list(RANGES).index(row["case"]), row["noise"], row["seed"]
+
+
 def write_rows(rows: list[dict], path: Path) -> None:
-    rows = sorted(rows, key=lambda r: (list(RANGES).index(r["case"]), r["noise"], r["seed"]))
+    rows = sorted(rows, key=draw_order)
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=FIELDS)
         writer.writeheader()
@@ -121,7 +126,7 @@ def write_rows(rows: list[dict], path: Path) -> None:
 def groups(rows: list[dict]) -> dict:
     """(case, noise) -> its draws, in the cases' order."""
     out: dict = {}
-    for row in sorted(rows, key=lambda r: (list(RANGES).index(r["case"]), r["noise"], r["seed"])):
+    for row in sorted(rows, key=draw_order):
         out.setdefault((row["case"], row["noise"]), []).append(row)
     return out
 
