@@ -14,6 +14,8 @@ median fit time and the worst draw per case.
 
     python benchmarks/success_map.py [--draws 10] [--cases chain_10s,small_jelly_1s] [--noise 0,0.01]
     python benchmarks/success_map.py --redraw   # table and figure from the CSV alone
+    python benchmarks/success_map.py --cases jelly_1s_velocities --noise 0.01 --strategy position_shooting \
+        --csv benchmarks/results/success_map_position_shooting.csv --figure docs/success_map_position_shooting.png
 
 Every draw is kept in benchmarks/results/success_map.csv (a draw run again replaces its
 row), so the map grows case by case; the table printed covers the draws just run, and the
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import time
 from pathlib import Path
 
@@ -75,11 +78,13 @@ def draw(case: str, seed: int, noise: float):
 FIELDS = ("case", "noise", "seed", "success", "score", "seconds", "errors", "standard_errors", "stages")
 
 
-def fit_draw(case: str, seed: int, noise: float) -> dict:
-    """One draw fitted: a CSV row (errors relative, standard errors of the log values)."""
+def fit_draw(case: str, seed: int, noise: float, strategy: str | None = None) -> dict:
+    """One draw fitted (with the experiment's strategy, or `strategy`): a CSV row (errors
+    relative, standard errors of the log values)."""
     experiment, target, truth, start = draw(case, seed, noise)
+    settings = experiment.settings if strategy is None else dataclasses.replace(experiment.settings, strategy=strategy)
     clock = time.perf_counter()
-    result = js.fit(experiment.scene, target, experiment.params, start, experiment.settings)
+    result = js.fit(experiment.scene, target, experiment.params, start, settings)
     seconds = time.perf_counter() - clock
     error = {n: float(result.final[n]) / truth[n] - 1 for n in truth}
     se = {n: float(v) for n, v in result.identifiability.relative_standard_error.items()}
@@ -192,6 +197,7 @@ def main() -> None:
     parser.add_argument("--csv", default=str(RESULTS / "success_map.csv"), help="draws kept here, merged by seed")
     parser.add_argument("--figure", default=str(ROOT / "docs" / "success_map.png"))
     parser.add_argument("--redraw", action="store_true", help="fit nothing: table and figure from the CSV")
+    parser.add_argument("--strategy", help="fit with this strategy, not the experiments' (give its own --csv)")
     args = parser.parse_args()
     path = Path(args.csv)
     rows = read_rows(path)
@@ -201,7 +207,7 @@ def main() -> None:
             raise SystemExit(f"error: unknown case {case!r}; use one of {', '.join(RANGES)}")
         for noise in (float(x) for x in args.noise.split(",")):
             for seed in range(args.first, args.first + args.draws):
-                row = fit_draw(case, seed, noise)
+                row = fit_draw(case, seed, noise, args.strategy)
                 ran.append(row)
                 key = (case, noise, seed)
                 rows = [r for r in rows if (r["case"], r["noise"], r["seed"]) != key] + [row]

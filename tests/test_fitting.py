@@ -325,6 +325,11 @@ def test_auto_strategy_choice(scenes):
     many = plan_stages(touching, settings, jelly, values=9)  # too many values for a cloud: gradient stages only
     assert [s.kind for s in many] == ["shooting", "direct"]
     assert [s.kind for s in plan_stages(long, js.FitSettings(ensemble="ensemble"), chain)] == ["shooting", "ensemble"]
+    positions = js.FitSettings(strategy="position_shooting")
+    assert [(s.kind, s.frames) for s in plan_stages(long, positions, chain)] == [
+        ("shooting", 10),
+        ("position_shooting", 10),
+    ]
 
 
 CUSTOM = """

@@ -25,7 +25,7 @@ def add_parser(sub):
     )
     parser.add_argument(
         "--strategy",
-        choices=["auto", "direct", "curriculum", "shooting", "free_shooting"],
+        choices=["auto", "direct", "curriculum", "shooting", "position_shooting", "free_shooting"],
         help="long-horizon strategy",
     )
     parser.add_argument(

@@ -10,7 +10,12 @@ P + B L. The same reduced matrix, inverted, is the covariance of p with every s_
 estimated too (not held), which the identifiability report uses.
 
 Blocks' Jacobians are taken in forward mode, one block at a time (`lax.map`), so memory
-holds one block's Jacobian (its residual count x (P + L)) at once.
+holds one block's Jacobian (its residual count x (P + L)) at once. When L is large (hundreds
+of state values: a jelly's start positions), that Jacobian dominates the cost; `frozen`
+then keeps each block's J_s^T J_s from the last full evaluation and takes only J_p (P
+tangents) and the products J_s^T [r, J_p] (one reverse pass) at each step: the gradient
+stays exact, so the answer is the same, in somewhat more (and far cheaper) steps. They are
+taken again whenever no damped step lowers the cost, and at the answer (its reduced matrix).
 
 Linked blocks (multiple shooting: block b's simulated end predicts block b + 1's start):
 `residual` returns (r_b, link_b), and the residuals also hold link_b - s_{b+1} for
@@ -33,6 +38,15 @@ NOISE_FRACTION = 1e-4
 """A step lowering the cost by less than this fraction of the noise variance ends the solve."""
 ROUND_OFF = 1e-26
 """A cost below this fraction of the first one is exact data fitted to round-off: the solve ends."""
+SLOW = 0.5
+"""With `frozen` blocks, a step from kept pieces more than this fraction of the one before it
+(the chord method converging slowly: the kept J_s^T J_s is far from the current one) takes them
+again, once the steps since they were taken have cost about as much as taking them (so
+refreshing never much more than doubles the work)."""
+SETTLED = 0.01
+"""With `frozen` blocks (linear convergence), a step moving every value of p by less than this
+fraction of its standard error (from the step's reduced matrix and the cost's noise variance)
+ends the solve."""
 
 
 @dataclasses.dataclass
@@ -60,7 +74,8 @@ def _compiled(residual, linked: bool):
     stages of a continuation): normal pieces, total cost, and the damped solve."""
     pieces = jax.jit(lambda p, s, d, links: _normal_pieces(residual, p, s, d, links if linked else False))
     cost = jax.jit(lambda p, s, d, links: _costs(residual, p, s, d, links if linked else False).sum())
-    return pieces, cost, jax.jit(_solve)
+    light = None if linked else jax.jit(lambda p, s, d, c: _light_pieces(residual, p, s, d, c))
+    return pieces, cost, jax.jit(_solve), light
 
 
 def _normal_pieces(residual, p, s, data, linked=False):
@@ -97,6 +112,22 @@ def _normal_pieces(residual, p, s, data, linked=False):
         return out + (-ls.T, -lp.T, c)
 
     return jax.lax.map(block, (s, data, following, has_next))
+
+
+def _light_pieces(residual, p, s, data, c):
+    """`_normal_pieces` of unlinked blocks with each block's J_s^T J_s given (`c`, (B, L, L)):
+    J_p in forward mode (P tangents) and J_s^T [J_p, r] by one reverse pass, per block."""
+    size = p.shape[0]
+
+    def block(args):
+        s_b, data_b = args
+        r, pullback = jax.vjp(lambda z: residual(p, z, data_b), s_b)
+        jp = jax.jacfwd(lambda q: residual(q, s_b, data_b))(p)
+        products = jax.vmap(lambda u: pullback(u)[0])(jnp.concatenate([jp.T, r[None]]))  # (P + 1, L)
+        return r @ r, jp.T @ jp, products[:size], jp.T @ r, products[size]
+
+    cost, a, b, gp, gs = jax.lax.map(block, (s, data))
+    return cost, a, b, c, gp, gs
 
 
 def _costs(residual, p, s, data, linked=False):
@@ -173,8 +204,24 @@ def _solve(pieces, damping, links=None, low=None, high=None):
     return dp, ds, reduced
 
 
+def _settled(dp, reduced, variance) -> bool:
+    """Whether every value of the step `dp` is below `SETTLED` of its standard error."""
+    if dp.shape[0] == 0:
+        return True
+    se = np.sqrt(np.maximum(variance * np.diag(np.linalg.pinv(np.asarray(reduced))), 0.0))
+    return bool(np.all(np.abs(np.asarray(dp)) <= SETTLED * se))
+
+
 def block_levenberg_marquardt(
-    residual, p, s, data, iterations: int = 20, tolerance: float = 1e-12, linked=False, bounds=None
+    residual,
+    p,
+    s,
+    data,
+    iterations: int = 20,
+    tolerance: float = 1e-12,
+    linked=False,
+    bounds=None,
+    frozen: bool = False,
 ) -> BlockSolution:
     """Minimise sum_b |residual(p, s_b, data_b)|^2 (`linked`: residual returns (r_b, link_b), and
     the cost adds sum_{b < B-1} |link_b - s_{b+1}|^2; a (B,) mask `linked` keeps only the
@@ -190,13 +237,33 @@ def block_levenberg_marquardt(
     further steps (linear convergence when the residuals are noise, not zero) move it
     by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
     first value (exact data, fitted to round-off). `bounds`: (low, high), each (P,), a box p
-    stays in (a value reaching its bound is held there while the others move)."""
+    stays in (a value reaching its bound is held there while the others move). `frozen`
+    (unlinked blocks only): keep the blocks' J_s^T J_s between full evaluations (module
+    docstring)."""
     p, s = jnp.asarray(p), jnp.asarray(s)
     links = _links(linked, s.shape[0])
     linked = bool(np.ndim(linked)) or bool(linked)
-    pieces_of, cost_of, solve_of = _compiled(residual, linked)
+    if frozen and linked:
+        raise ValueError("frozen blocks must be unlinked")
+    pieces_of, cost_of, solve_of, light_of = _compiled(residual, linked)
     on = jnp.asarray(links)
-    pieces_fn = lambda p, s, d: pieces_of(p, s, d, on)  # noqa: E731
+    taken_at = [None]  # where the blocks' J_s^T J_s was last taken: (p, s)
+
+    # light pieces cost about 4 (P + 1) tangents' work (P forward, P + 1 cotangents back, the
+    # reverse pass about twice a forward one), the full ones P + L
+    worth = (p.size + s.shape[1]) / (4 * (p.size + 1))
+    since = [0]  # light pieces taken since the full ones
+
+    def pieces_fn(p, s, d, fresh=False):
+        if frozen and not fresh:
+            since[0] += 1
+            return light_of(p, s, d, pieces[3])
+        taken_at[0], since[0] = (p, s), 0
+        return pieces_of(p, s, d, on)
+
+    def stale(p, s):
+        return frozen and (taken_at[0][0] is not p or taken_at[0][1] is not s)
+
     cost_fn = lambda p, s, d: cost_of(p, s, d, on)  # noqa: E731
     low, high = (None, None) if bounds is None else (jnp.asarray(b, dtype=p.dtype) for b in bounds)
 
@@ -205,17 +272,21 @@ def block_levenberg_marquardt(
             return solve_of(pieces, damping, on.astype(s.dtype))
         return solve_of(pieces, damping, on.astype(s.dtype), low - p, high - p)
 
-    pieces = pieces_fn(p, s, data)
+    pieces = pieces_fn(p, s, data, fresh=True)
     cost = initial_cost = float(pieces[0].sum())
     first = jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data)))
     count = int((first[0] if linked else first).shape[0])
     rows = count * s.shape[0] + int(links.sum()) * s.shape[1]  # with the links' rows
     freedom = max(rows - p.size - s.size, 1)
-    history, damping, still = [], 1e-3, False
+    history, damping, still, last_step = [], 1e-3, False, np.inf
     for _ in range(iterations):
-        accepted = False
-        for _ in range(12):
-            dp, ds, _ = solve(pieces, damping, p)
+        accepted, fresh = False, not stale(p, s)
+        for attempt in range(24 if frozen else 12):
+            if attempt == 12:  # the kept J_s^T J_s may be what fails: take it again here
+                if not stale(p, s):
+                    break
+                pieces, damping, fresh = pieces_fn(p, s, data, fresh=True), 1e-3, True
+            dp, ds, reduced = solve(pieces, damping, p)
             new_cost = float(cost_fn(p + dp, s + ds, data))
             if np.isfinite(new_cost) and new_cost < cost:
                 accepted = True
@@ -228,14 +299,27 @@ def block_levenberg_marquardt(
         below_noise = cost - new_cost <= NOISE_FRACTION * new_cost / freedom
         p, s, cost = p + dp, s + ds, new_cost
         damping = max(damping / 10.0, 1e-12)
-        pieces = pieces_fn(p, s, data)
+        moved = float(jnp.max(jnp.abs(dp), initial=0.0))
+        slow = frozen and not fresh and moved > SLOW * last_step and since[0] >= worth
+        last_step = moved
+        pieces = pieces_fn(p, s, data, fresh=slow)
         step = max(float(jnp.max(jnp.abs(dp), initial=0.0)), float(jnp.max(jnp.abs(ds), initial=0.0)))
         still, was_still = step <= tolerance, still
-        if float(jnp.max(jnp.abs(dp), initial=0.0)) <= tolerance and improvement <= tolerance:
+        if new_cost <= ROUND_OFF * initial_cost:
             break
-        if still and was_still:
-            break
-        if improvement <= tolerance**2 or below_noise or new_cost <= ROUND_OFF * initial_cost:
-            break
+        if (
+            (float(jnp.max(jnp.abs(dp), initial=0.0)) <= tolerance and improvement <= tolerance)
+            or (still and was_still)
+            or improvement <= tolerance**2
+            or below_noise
+            or (frozen and _settled(dp, reduced, new_cost / freedom))
+        ):
+            if fresh:
+                break
+            # a step from a kept J_s^T J_s says little about the answer (its reduced matrix
+            # and standard errors can be far off): decide again from the Jacobian here
+            pieces, still = pieces_fn(p, s, data, fresh=True), False
+    if stale(p, s):  # the answer's reduced matrix (standard errors) from its own Jacobian
+        pieces = pieces_fn(p, s, data, fresh=True)
     _, _, reduced = solve(pieces, 0.0, p)
     return BlockSolution(np.asarray(p), np.asarray(s), history, cost, np.asarray(reduced), count * s.shape[0])

@@ -26,7 +26,10 @@ from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fit
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
 from .settings import FitSettings, Stage, needs_horizon, plan_stages
-from .shooting import describe, fit_segments, free_shooting_stage
+from .shooting import describe, fit_recorded_segments, fit_segments, free_shooting_stage
+
+SEGMENT_STATES = ("free_shooting", "position_shooting")
+"""Stages that fit the segments' start states with the parameters (`fit.shooting`)."""
 
 
 def _optimizer(settings: FitSettings):
@@ -187,7 +190,7 @@ def fit_batch(
                 progress.horizon = measure_horizon(scene, observations, names, settings.horizon_spread, progress.theta)
             stages[-1] = horizon_stage(scene, observations, names, settings, stages[-1], progress.horizon)
         stage = stages[progress.stage]
-        if stage.kind == "free_shooting":  # Levenberg-Marquardt with the segments' states, per member
+        if stage.kind in SEGMENT_STATES:  # Levenberg-Marquardt with the segments' states, per member
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
             progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
         else:
@@ -303,10 +306,11 @@ def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, 
 
 def _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits):
     batched_data = len(observations) > 1
-    if stages[-1].kind == "free_shooting":  # downhill on each continuity weight's objective, ending on the last
+    if stages[-1].kind in SEGMENT_STATES:  # downhill on each continuity weight's objective, ending on the last
         if segment_fits is None:  # resumed after the stage: settle the states at the answer again
+            fit_of = fit_recorded_segments if stages[-1].kind == "position_shooting" else fit_segments
             segment_fits = [
-                fit_segments(
+                fit_of(
                     scene,
                     observations[m if batched_data else 0],
                     names,
@@ -348,7 +352,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
             obs = with_fitted_start(obs, steps.nuisance if steps else nuisance)  # reported with them held
             estimated = estimated_inputs(obs, "driven" in nuisance)
         else:
-            whole = settings.polish and stages[-1].kind != "free_shooting"  # never past the segments
+            whole = settings.polish and stages[-1].kind not in SEGMENT_STATES  # never past the segments
             steps = gauss_newton_polish(scene, obs, names, final, settings, segment=segment) if whole else []
         for loss_before, values_before in steps:
             history.append(loss_before)
@@ -362,7 +366,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
             final_loss_member = final_loss[member]
         reduced = getattr(steps, "reduced", None)  # start states estimated too: their uncertainty counts
         shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0, **horizon_objective}
-        if segment_fits is not None and stages[-1].kind == "free_shooting":  # standard errors of that objective
+        if segment_fits is not None and stages[-1].kind in SEGMENT_STATES:  # standard errors of that objective
             fit = segment_fits[member]
             dof = max(fit.count + fit.link_rows - len(fit.reduced) - fit.unknowns, 1)
             shooting = dict(

@@ -14,7 +14,7 @@ from .observations import Observations
 
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
 OPTIMIZERS = ("lbfgs", "adam")
-STRATEGIES = ("auto", "direct", "curriculum", "shooting", "free_shooting")
+STRATEGIES = ("auto", "direct", "curriculum", "shooting", "position_shooting", "free_shooting")
 ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
 ENSEMBLE_MAX_PARAMETERS = 8  # scalar values; a Gaussian cloud needs several rollouts per dimension
 
@@ -30,7 +30,10 @@ class FitSettings:
         clip: Adam's gradient clipping (global norm).
         strategy: "direct" (whole horizon at once), "curriculum" (horizons 1/8, 1/4,
             1/2, 1 of the target), "shooting" (segments of `segment_frames` frames from
-            recorded states, then the whole horizon), "free_shooting" (segments of
+            recorded states, then the whole horizon), "position_shooting" (the same
+            segments, then again with their start positions fitted by Levenberg-Marquardt,
+            the recorded ones counted as one more frame of data: for recorded states whose
+            positions are noisy, `fit.shooting.fit_recorded_segments`), "free_shooting" (segments of
             `segment_frames` frames, each from a start state fitted with the parameters
             by Levenberg-Marquardt under a continuity penalty: positions alone suffice, and
             no simulation runs longer than a segment, so the answer minimises the
@@ -126,7 +129,8 @@ class Stage:
 
     `kind`: "direct" (the optimiser on the loss), "shooting" (segments of `frames` frames
     from recorded states), "free_shooting" (segments of `frames` frames from fitted start
-    states, Levenberg-Marquardt) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
+    states, Levenberg-Marquardt), "position_shooting" (segments from recorded states with
+    their positions fitted, Levenberg-Marquardt) or "ensemble" (smoothed Gauss-Newton, see FitSettings.ensemble).
     A "gauss_newton" stage (the optional polish, after the others) shorter than the target
     ran over segments from recorded states, as "shooting" does. `spread`: an ensemble
     stage's initial cloud (standard deviation in log-parameter space) when not
@@ -168,6 +172,15 @@ def plan_stages(
                 "strategy", "free_shooting fits target files, not recordings", 'fit recordings with "direct"'
             )
         return [Stage("free_shooting", min(settings.segment_frames, total))]
+    if strategy == "position_shooting":  # shooting brings the values near, then the starts' positions are fitted
+        if not observations.full:
+            raise InputError(
+                "strategy",
+                "position_shooting starts from recorded states and needs them for every particle",
+                "use free_shooting (fits the segments' states from positions)",
+            )
+        frames = min(settings.segment_frames, total)
+        return [Stage("shooting", frames), Stage("position_shooting", frames)]
     if strategy == "shooting":  # from recorded states
         stages = [Stage("shooting", min(settings.segment_frames, total)), Stage("direct", total)]
     elif strategy == "curriculum":
