@@ -25,11 +25,8 @@ from .observations import Observations
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
-from .settings import FitSettings, Stage, needs_horizon, plan_stages
-from .shooting import describe, fit_recorded_segments, fit_segments, free_shooting_stage
-
-SEGMENT_STATES = ("free_shooting", "position_shooting")
-"""Stages that fit the segments' start states with the parameters (`fit.shooting`)."""
+from .settings import SEGMENT_STATES, FitSettings, Stage, needs_horizon, plan_stages
+from .shooting import describe, free_shooting_stage, segment_fitter
 
 
 def _optimizer(settings: FitSettings):
@@ -308,7 +305,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
     batched_data = len(observations) > 1
     if stages[-1].kind in SEGMENT_STATES:  # downhill on each continuity weight's objective, ending on the last
         if segment_fits is None:  # resumed after the stage: settle the states at the answer again
-            fit_of = fit_recorded_segments if stages[-1].kind == "position_shooting" else fit_segments
+            fit_of = segment_fitter(stages[-1].kind)
             segment_fits = [
                 fit_of(
                     scene,

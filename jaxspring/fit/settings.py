@@ -16,6 +16,7 @@ FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
 OPTIMIZERS = ("lbfgs", "adam")
 STRATEGIES = ("auto", "direct", "curriculum", "shooting", "position_shooting", "free_shooting")
 ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
+SEGMENT_STATES = ("free_shooting", "position_shooting")  # stages fitting the segments' start states too
 ENSEMBLE_MAX_PARAMETERS = 8  # scalar values; a Gaussian cloud needs several rollouts per dimension
 
 
@@ -33,7 +34,7 @@ class FitSettings:
             recorded states, then the whole horizon), "position_shooting" (the same
             segments, then again with their start positions fitted by Levenberg-Marquardt,
             the recorded ones counted as one more frame of data: for recorded states whose
-            positions are noisy, `fit.shooting.fit_recorded_segments`), "free_shooting" (segments of
+            positions are noisy, `fit.position_shooting`), "free_shooting" (segments of
             `segment_frames` frames, each from a start state fitted with the parameters
             by Levenberg-Marquardt under a continuity penalty: positions alone suffice, and
             no simulation runs longer than a segment, so the answer minimises the
