@@ -12,10 +12,13 @@ estimated too (not held), which the identifiability report uses.
 Blocks' Jacobians are taken in forward mode, one block at a time (`lax.map`), so memory
 holds one block's Jacobian (its residual count x (P + L)) at once. When L is large (hundreds
 of state values: a jelly's start positions), that Jacobian dominates the cost; `frozen`
-then keeps each block's J_s^T J_s from the last full evaluation and takes only J_p (P
-tangents) and the products J_s^T [r, J_p] (one reverse pass) at each step: the gradient
-stays exact, so the answer is the same, in somewhat more (and far cheaper) steps. They are
-taken again whenever no damped step lowers the cost, and at the answer (its reduced matrix).
+then takes it rarely and, at each step, only J_p (P tangents) and the products
+J_s^T [r, J_p] (one reverse pass). Each block's system (J_s^T J_s + damping) x =
+[J_s^T J_p, J_s^T r] is solved by conjugate gradients with J_s^T J_s applied as it is at the
+step (a forward and a transposed pass of the linearised block per iteration),
+preconditioned by the J_s^T J_s last taken: inexact Gauss-Newton steps with the exact
+gradient (so the same answer), and at the answer the reduced matrix to round-off. The
+Jacobian is taken again once the solves since it was taken have cost as much (`CG_COST`).
 
 Linked blocks (multiple shooting: block b's simulated end predicts block b + 1's start):
 `residual` returns (r_b, link_b), and the residuals also hold link_b - s_{b+1} for
@@ -35,18 +38,28 @@ import jax.numpy as jnp
 import numpy as np
 
 NOISE_FRACTION = 1e-4
-"""A step lowering the cost by less than this fraction of the noise variance ends the solve."""
+"""A step lowering the cost by less than this fraction of the noise variance ends the solve, as
+does a nearly undamped step (`GAUSS_NEWTON`) predicted to lower it by less that fails (no
+damping is tried: a smaller step cannot gain what the data could show)."""
+GAUSS_NEWTON = 1e-3
+"""Damping up to which a step is close to the Gauss-Newton step (the largest fall the
+linearised residuals allow), so that its predicted fall says whether any step can do better."""
 ROUND_OFF = 1e-26
 """A cost below this fraction of the first one is exact data fitted to round-off: the solve ends."""
-SLOW = 0.5
-"""With `frozen` blocks, a step from kept pieces more than this fraction of the one before it
-(the chord method converging slowly: the kept J_s^T J_s is far from the current one) takes them
-again, once the steps since they were taken have cost about as much as taking them (so
-refreshing never much more than doubles the work)."""
-SETTLED = 0.01
-"""With `frozen` blocks (linear convergence), a step moving every value of p by less than this
-fraction of its standard error (from the step's reduced matrix and the cost's noise variance)
-ends the solve."""
+CG_TOLERANCE = 1e-10
+"""With `frozen` blocks, the conjugate-gradient solves at the answer (its reduced matrix) end
+when every column's residual is below this fraction of its right-hand side."""
+CG_STEP_TOLERANCE = 1e-3
+"""... and those of a step at this fraction: an inexact Gauss-Newton step converges as fast
+as this fraction makes it (the gradient is exact, so the answer is the same)."""
+CG_ITERATIONS = 100
+"""With `frozen` blocks, the most conjugate-gradient iterations a solve takes."""
+CG_COST = 1.5
+"""One conjugate-gradient iteration's cost per right-hand side, in forward tangents (a
+forward and a transposed pass of the linearised block; measured on the jelly's segments).
+Once a `frozen` solve's iterations since the Jacobians were taken have cost as much as
+taking them again (P + L tangents), they are taken again at the next point: the kept
+J_s^T J_s, far from the current one, preconditions poorly."""
 
 
 @dataclasses.dataclass
@@ -75,7 +88,8 @@ def _compiled(residual, linked: bool):
     pieces = jax.jit(lambda p, s, d, links: _normal_pieces(residual, p, s, d, links if linked else False))
     cost = jax.jit(lambda p, s, d, links: _costs(residual, p, s, d, links if linked else False).sum())
     light = None if linked else jax.jit(lambda p, s, d, c: _light_pieces(residual, p, s, d, c))
-    return pieces, cost, jax.jit(_solve), light
+    iterative = None if linked else jax.jit(functools.partial(_iterative_solves, residual))
+    return pieces, cost, jax.jit(_solve), light, iterative
 
 
 def _normal_pieces(residual, p, s, data, linked=False):
@@ -130,6 +144,70 @@ def _light_pieces(residual, p, s, data, c):
     return cost, a, b, c, gp, gs
 
 
+def _damped_scale(c):
+    """Each block's damping scale: the diagonal of c (B, L, L), floored for unknowns the data
+    barely see."""
+    diag_c = jnp.diagonal(c, axis1=-2, axis2=-1)
+    floor = 1e-12 * jnp.max(diag_c, axis=-1, keepdims=True) + 1e-300
+    return jnp.maximum(diag_c, floor)
+
+
+def _right_sides(b, gs):
+    """The blocks' right-hand sides [J_s^T J_p, J_s^T r], (B, L, P + 1)."""
+    return jnp.concatenate([jnp.swapaxes(b, -1, -2), gs[..., None]], axis=-1)
+
+
+def _conjugate_gradients(apply, precondition, rhs, tolerance):
+    """X (L, K) with apply(X) = rhs for a symmetric positive definite `apply`, every column at
+    once, preconditioned, to `tolerance` of each column's size; and the iterations taken."""
+    goal = tolerance**2 * jnp.sum(rhs**2, axis=0)
+
+    def ratio(num, den):
+        return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 0.0)
+
+    def going(state):
+        i, _, r, _, _ = state
+        return (i < CG_ITERATIONS) & jnp.any(jnp.sum(r**2, axis=0) > goal)
+
+    def iteration(state):
+        i, x, r, d, rz = state
+        q = apply(d)
+        alpha = ratio(rz, jnp.sum(d * q, axis=0))
+        x, r = x + alpha * d, r - alpha * q
+        z = precondition(r)
+        rz_next = jnp.sum(r * z, axis=0)
+        return i + 1, x, r, z + ratio(rz_next, rz) * d, rz_next
+
+    z = precondition(rhs)
+    start = (0, jnp.zeros_like(rhs), rhs, z, jnp.sum(rhs * z, axis=0))
+    i, x, *_ = jax.lax.while_loop(going, iteration, start)
+    return x, i
+
+
+def _iterative_solves(residual, p, s, data, c, damping, rhs, tolerance):
+    """Per unlinked block, (J_s^T J_s + damping D) X = rhs (B, L, K) with J_s at (p, s_b),
+    applied by the linearised block and its transpose, by conjugate gradients preconditioned
+    by the kept c (B, L, L) + damping D (D: c's diagonal); and the most iterations a block took."""
+    scale = _damped_scale(c)
+    damping = jnp.maximum(damping, 1e-12)
+
+    def block(args):
+        s_b, data_b, c_b, scale_b, rhs_b = args
+        _, forward = jax.linearize(lambda z: residual(p, z, data_b), s_b)
+        backward = jax.linear_transpose(forward, s_b)
+        normal = jax.vmap(lambda v: backward(forward(v))[0], in_axes=1, out_axes=1)
+        factor = jax.scipy.linalg.cho_factor(c_b + damping * jnp.diag(scale_b))
+        return _conjugate_gradients(
+            lambda v: normal(v) + damping * scale_b[:, None] * v,
+            lambda r: jax.scipy.linalg.cho_solve(factor, r),
+            rhs_b,
+            tolerance,
+        )
+
+    solved, iterations = jax.lax.map(block, (s, data, c, scale, rhs))
+    return solved, jnp.max(iterations)
+
+
 def _costs(residual, p, s, data, linked=False):
     if not (jnp.ndim(linked) or linked):
         return jax.vmap(lambda s_b, d: jnp.sum(residual(p, s_b, d) ** 2))(s, data)
@@ -168,11 +246,13 @@ def _chain_solve(c, e, rhs):
     return x
 
 
-def _solve(pieces, damping, links=None, low=None, high=None):
-    """The damped system's step (dp, ds) by the Schur complement; and the reduced matrix.
+def _solve(pieces, damping, links=None, low=None, high=None, solved=None):
+    """The damped system's step (dp, ds) by the Schur complement; the reduced matrix; and the
+    cost's fall the step would bring were the residuals linear.
     `links`: (B,) which blocks link to the next (linked blocks); `low`, `high`: (P,) how far p
     may move (a value that would pass its bound stops there, the others are solved again
-    given it, and ds is the blocks' best answer to that dp)."""
+    given it, and ds is the blocks' best answer to that dp); `solved`: the blocks' damped
+    systems already solved for their right-hand sides (`_iterative_solves`)."""
     _, a, b, c, gp, gs = pieces[:6]
     if len(pieces) > 6:  # linked blocks: block b + 1 also sees the defect of block b's link
         e, f, defect = pieces[6:]
@@ -182,14 +262,11 @@ def _solve(pieces, damping, links=None, low=None, high=None):
         gs = gs.at[1:].add(-defect[:-1])
     corner = a.sum(axis=0)
     size, local = corner.shape[0], c.shape[-1]
-    diag_c = jnp.diagonal(c, axis1=-2, axis2=-1)
-    floor = 1e-12 * jnp.max(diag_c, axis=-1, keepdims=True) + 1e-300  # unknowns the data barely see
-    c_damped = c + jnp.maximum(damping, 1e-12) * jnp.eye(local) * jnp.maximum(diag_c, floor)[..., None, :]
-    rhs = jnp.concatenate([jnp.swapaxes(b, -1, -2), gs[..., None]], axis=-1)  # (B, L, P + 1)
-    if len(pieces) > 6:
-        solved = _chain_solve(c_damped, e, rhs)
-    else:
-        solved = jnp.linalg.solve(c_damped, rhs)
+    c_damped = c + jnp.maximum(damping, 1e-12) * jnp.eye(local) * _damped_scale(c)[..., None, :]
+    if solved is None and len(pieces) > 6:
+        solved = _chain_solve(c_damped, e, _right_sides(b, gs))
+    elif solved is None:
+        solved = jnp.linalg.solve(c_damped, _right_sides(b, gs))
     c_inv_bt, c_inv_gs = solved[..., :size], solved[..., size]
     reduced = corner - jnp.einsum("bpl,blq->pq", b, c_inv_bt)
     damped = reduced + damping * jnp.diag(jnp.maximum(jnp.diag(corner), 1e-300))
@@ -201,15 +278,11 @@ def _solve(pieces, damping, links=None, low=None, high=None):
         free = jnp.where(held[:, None] | held[None, :], 0.0, damped) + jnp.diag(held.astype(damped.dtype))
         dp = fixed - jnp.linalg.lstsq(free, jnp.where(held, 0.0, rhs + damped @ fixed), rcond=1e-14)[0]
     ds = -(c_inv_gs + jnp.einsum("blp,p->bl", c_inv_bt, dp))
-    return dp, ds, reduced
-
-
-def _settled(dp, reduced, variance) -> bool:
-    """Whether every value of the step `dp` is below `SETTLED` of its standard error."""
-    if dp.shape[0] == 0:
-        return True
-    se = np.sqrt(np.maximum(variance * np.diag(np.linalg.pinv(np.asarray(reduced))), 0.0))
-    return bool(np.all(np.abs(np.asarray(dp)) <= SETTLED * se))
+    # the cost's fall the linearised residuals predict, |r|^2 - |r + J d|^2 = -g.d + damping d.D.d
+    # (d solves (J^T J + damping D) d = -g)
+    shrink = jnp.sum(dp**2 * jnp.maximum(jnp.diag(corner), 1e-300)) + jnp.sum(ds**2 * _damped_scale(c))
+    predicted = -(gp.sum(axis=0) @ dp + jnp.sum(gs * ds)) + jnp.maximum(damping, 1e-12) * shrink
+    return dp, ds, reduced, predicted
 
 
 def block_levenberg_marquardt(
@@ -238,59 +311,59 @@ def block_levenberg_marquardt(
     by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
     first value (exact data, fitted to round-off). `bounds`: (low, high), each (P,), a box p
     stays in (a value reaching its bound is held there while the others move). `frozen`
-    (unlinked blocks only): keep the blocks' J_s^T J_s between full evaluations (module
-    docstring)."""
+    (unlinked blocks only): take the blocks' J_s^T J_s only to precondition solves by
+    conjugate gradients (module docstring)."""
     p, s = jnp.asarray(p), jnp.asarray(s)
     links = _links(linked, s.shape[0])
     linked = bool(np.ndim(linked)) or bool(linked)
     if frozen and linked:
         raise ValueError("frozen blocks must be unlinked")
-    pieces_of, cost_of, solve_of, light_of = _compiled(residual, linked)
+    pieces_of, cost_of, solve_of, light_of, iterative_of = _compiled(residual, linked)
     on = jnp.asarray(links)
-    taken_at = [None]  # where the blocks' J_s^T J_s was last taken: (p, s)
+    spent = [0.0]  # with `frozen`: the solves' cost since the Jacobians were taken, in their units
+    per_iteration = CG_COST * (p.size + 1) / (p.size + s.shape[1])
 
-    # light pieces cost about 4 (P + 1) tangents' work (P forward, P + 1 cotangents back, the
-    # reverse pass about twice a forward one), the full ones P + L
-    worth = (p.size + s.shape[1]) / (4 * (p.size + 1))
-    since = [0]  # light pieces taken since the full ones
-
-    def pieces_fn(p, s, d, fresh=False):
-        if frozen and not fresh:
-            since[0] += 1
-            return light_of(p, s, d, pieces[3])
-        taken_at[0], since[0] = (p, s), 0
-        return pieces_of(p, s, d, on)
-
-    def stale(p, s):
-        return frozen and (taken_at[0][0] is not p or taken_at[0][1] is not s)
+    def pieces_fn(p, s, d, kept=None):
+        if kept is None or spent[0] >= 1.0:
+            spent[0] = 0.0
+            return pieces_of(p, s, d, on)
+        return light_of(p, s, d, kept)
 
     cost_fn = lambda p, s, d: cost_of(p, s, d, on)  # noqa: E731
     low, high = (None, None) if bounds is None else (jnp.asarray(b, dtype=p.dtype) for b in bounds)
 
-    def solve(pieces, damping, p):
-        if low is None:
-            return solve_of(pieces, damping, on.astype(s.dtype))
-        return solve_of(pieces, damping, on.astype(s.dtype), low - p, high - p)
+    def solve(pieces, damping, p, s):
+        solved = None
+        if frozen:  # the blocks' systems as they are at (p, s), preconditioned by the kept ones
+            rhs = _right_sides(pieces[2], pieces[5])
+            tolerance = CG_STEP_TOLERANCE if damping else CG_TOLERANCE  # a step, or the answer
+            solved, iterations = iterative_of(p, s, data, pieces[3], damping, rhs, tolerance)
+            spent[0] += int(iterations) * per_iteration
+        bounded = () if low is None else (low - p, high - p)
+        return solve_of(pieces, damping, on.astype(s.dtype), *bounded, solved=solved)
 
-    pieces = pieces_fn(p, s, data, fresh=True)
+    pieces = pieces_fn(p, s, data)
     cost = initial_cost = float(pieces[0].sum())
     first = jax.eval_shape(lambda: residual(p, s[0], jax.tree_util.tree_map(lambda x: x[0], data)))
     count = int((first[0] if linked else first).shape[0])
     rows = count * s.shape[0] + int(links.sum()) * s.shape[1]  # with the links' rows
     freedom = max(rows - p.size - s.size, 1)
-    history, damping, still, last_step = [], 1e-3, False, np.inf
+    history, damping, still = [], 1e-3, False
     for _ in range(iterations):
-        accepted, fresh = False, not stale(p, s)
-        for attempt in range(24 if frozen else 12):
-            if attempt == 12:  # the kept J_s^T J_s may be what fails: take it again here
-                if not stale(p, s):
-                    break
-                pieces, damping, fresh = pieces_fn(p, s, data, fresh=True), 1e-3, True
-            dp, ds, reduced = solve(pieces, damping, p)
+        accepted = False
+        for attempt in range(12):
+            dp, ds, reduced, predicted = solve(pieces, damping, p, s)
             new_cost = float(cost_fn(p + dp, s + ds, data))
             if np.isfinite(new_cost) and new_cost < cost:
                 accepted = True
                 break
+            if (
+                attempt == 0
+                and damping <= GAUSS_NEWTON
+                and low is None
+                and predicted <= NOISE_FRACTION * cost / freedom
+            ):
+                break  # not even the Gauss-Newton step could lower the cost by a measurable amount
             damping *= 10.0
         if not accepted:
             break
@@ -299,27 +372,16 @@ def block_levenberg_marquardt(
         below_noise = cost - new_cost <= NOISE_FRACTION * new_cost / freedom
         p, s, cost = p + dp, s + ds, new_cost
         damping = max(damping / 10.0, 1e-12)
-        moved = float(jnp.max(jnp.abs(dp), initial=0.0))
-        slow = frozen and not fresh and moved > SLOW * last_step and since[0] >= worth
-        last_step = moved
-        pieces = pieces_fn(p, s, data, fresh=slow)
+        pieces = pieces_fn(p, s, data, kept=pieces[3] if frozen else None)
         step = max(float(jnp.max(jnp.abs(dp), initial=0.0)), float(jnp.max(jnp.abs(ds), initial=0.0)))
         still, was_still = step <= tolerance, still
-        if new_cost <= ROUND_OFF * initial_cost:
-            break
         if (
-            (float(jnp.max(jnp.abs(dp), initial=0.0)) <= tolerance and improvement <= tolerance)
+            new_cost <= ROUND_OFF * initial_cost
+            or (float(jnp.max(jnp.abs(dp), initial=0.0)) <= tolerance and improvement <= tolerance)
             or (still and was_still)
             or improvement <= tolerance**2
             or below_noise
-            or (frozen and _settled(dp, reduced, new_cost / freedom))
         ):
-            if fresh:
-                break
-            # a step from a kept J_s^T J_s says little about the answer (its reduced matrix
-            # and standard errors can be far off): decide again from the Jacobian here
-            pieces, still = pieces_fn(p, s, data, fresh=True), False
-    if stale(p, s):  # the answer's reduced matrix (standard errors) from its own Jacobian
-        pieces = pieces_fn(p, s, data, fresh=True)
-    _, _, reduced = solve(pieces, 0.0, p)
+            break
+    _, _, reduced, _ = solve(pieces, 0.0, p, s)
     return BlockSolution(np.asarray(p), np.asarray(s), history, cost, np.asarray(reduced), count * s.shape[0])

@@ -36,7 +36,9 @@ def fit_recorded_segments(
     (errors in variables; measured on the 7 x 6 x 5 jelly over 1 s with 1% noise: kd 0.35-75x
     its truth). Fitting the start positions removes that bias. The segments are not joined
     (each is its own motion from its own start), so the blocks are independent, and each
-    holds hundreds of start values: its J_s^T J_s is kept between steps (`frozen`).
+    holds hundreds of start values: its J_s^T J_s only preconditions the solves (`frozen`).
+    Segments touching the ground are kept (unlike `fit_segments`'s): a jelly's damping shows
+    mostly in how its impacts ring down.
 
     Example:
         >>> fit = fit_recorded_segments(scene, obs, ["ks", "kd"], {"ks": 250.0, "kd": 0.3})
