@@ -146,7 +146,8 @@ def test_frozen_state_blocks_reach_the_same_answer_and_standard_errors(noise, mo
     where the full Levenberg-Marquardt ends (to a small fraction of a standard error, the
     stopping rules' scale), with the same reduced matrix, both with the Jacobians taken again
     when the solves grow costly and with them never taken again (the start's J_s^T J_s
-    preconditioning every solve, where a chord method would end elsewhere)."""
+    preconditioning every solve, where a chord method would end elsewhere). With the
+    iterations cut to one, the answer's reduced matrix comes from its full Jacobian."""
     t = jnp.linspace(0.0, 2.0, 25)
     truth_p = np.array([-0.7, 0.3])
     truth_s = np.random.default_rng(2).normal(scale=0.3, size=(4, 4))
@@ -162,6 +163,10 @@ def test_frozen_state_blocks_reach_the_same_answer_and_standard_errors(noise, mo
     kept = block_levenberg_marquardt(residual, *start, data, iterations=200, tolerance=1e-14, frozen=True)
     monkeypatch.setattr(block_lm, "CG_COST", 0.0)  # the Jacobians never taken again
     never = block_levenberg_marquardt(residual, *start, data, iterations=200, tolerance=1e-14, frozen=True)
+    monkeypatch.setattr(block_lm, "CG_ITERATIONS", 1)  # every solve cut short: the answer's from its Jacobian
+    short = block_levenberg_marquardt(residual, *start, data, iterations=20, frozen=True)
+    there = block_levenberg_marquardt(residual, short.p, short.s, data, iterations=0)
+    np.testing.assert_allclose(short.reduced, there.reduced, rtol=1e-10)
     for solution in (kept, never):
         costs = [cost for cost, _ in solution.history] + [solution.cost]
         assert all(later < earlier for earlier, later in zip(costs, costs[1:]))

@@ -17,8 +17,9 @@ J_s^T [r, J_p] (one reverse pass). Each block's system (J_s^T J_s + damping) x =
 [J_s^T J_p, J_s^T r] is solved by conjugate gradients with J_s^T J_s applied as it is at the
 step (a forward and a transposed pass of the linearised block per iteration),
 preconditioned by the J_s^T J_s last taken: inexact Gauss-Newton steps with the exact
-gradient (so the same answer), and at the answer the reduced matrix to round-off. The
-Jacobian is taken again once the solves since it was taken have cost as much (`CG_COST`).
+gradient (so the same answer), and at the answer the reduced matrix to `CG_TOLERANCE` (from
+the full Jacobian should the iterations run out). The Jacobian is taken again once the
+solves since it was taken have cost as much (`CG_COST`).
 
 Linked blocks (multiple shooting: block b's simulated end predicts block b + 1's start):
 `residual` returns (r_b, link_b), and the residuals also hold link_b - s_{b+1} for
@@ -39,11 +40,8 @@ import numpy as np
 
 NOISE_FRACTION = 1e-4
 """A step lowering the cost by less than this fraction of the noise variance ends the solve, as
-does a nearly undamped step (`GAUSS_NEWTON`) predicted to lower it by less that fails (no
-damping is tried: a smaller step cannot gain what the data could show)."""
-GAUSS_NEWTON = 1e-3
-"""Damping up to which a step is close to the Gauss-Newton step (the largest fall the
-linearised residuals allow), so that its predicted fall says whether any step can do better."""
+does a failed step when the undamped (Gauss-Newton) step is predicted to lower it by less:
+no more damping is tried, since a shorter step cannot gain what the data could show."""
 ROUND_OFF = 1e-26
 """A cost below this fraction of the first one is exact data fitted to round-off: the solve ends."""
 CG_TOLERANCE = 1e-10
@@ -84,7 +82,8 @@ def _links(linked, count):
 @functools.lru_cache(maxsize=2)  # one problem's stages; older problems let go
 def _compiled(residual, linked: bool):
     """The solver's jitted pieces for one residual function (reused across calls, e.g. the
-    stages of a continuation): normal pieces, total cost, and the damped solve."""
+    stages of a continuation): normal pieces, total cost, the damped solve, and for unlinked
+    blocks the light pieces and the iterative solves (`frozen`)."""
     pieces = jax.jit(lambda p, s, d, links: _normal_pieces(residual, p, s, d, links if linked else False))
     cost = jax.jit(lambda p, s, d, links: _costs(residual, p, s, d, links if linked else False).sum())
     light = None if linked else jax.jit(lambda p, s, d, c: _light_pieces(residual, p, s, d, c))
@@ -157,9 +156,10 @@ def _right_sides(b, gs):
     return jnp.concatenate([jnp.swapaxes(b, -1, -2), gs[..., None]], axis=-1)
 
 
-def _conjugate_gradients(apply, precondition, rhs, tolerance):
+def _conjugate_gradients(apply, precondition, rhs, tolerance, most):
     """X (L, K) with apply(X) = rhs for a symmetric positive definite `apply`, every column at
-    once, preconditioned, to `tolerance` of each column's size; and the iterations taken."""
+    once, preconditioned, to `tolerance` of each column's size or for `most` iterations; and
+    the iterations taken."""
     goal = tolerance**2 * jnp.sum(rhs**2, axis=0)
 
     def ratio(num, den):
@@ -167,7 +167,7 @@ def _conjugate_gradients(apply, precondition, rhs, tolerance):
 
     def going(state):
         i, _, r, _, _ = state
-        return (i < CG_ITERATIONS) & jnp.any(jnp.sum(r**2, axis=0) > goal)
+        return (i < most) & jnp.any(jnp.sum(r**2, axis=0) > goal)
 
     def iteration(state):
         i, x, r, d, rz = state
@@ -184,7 +184,7 @@ def _conjugate_gradients(apply, precondition, rhs, tolerance):
     return x, i
 
 
-def _iterative_solves(residual, p, s, data, c, damping, rhs, tolerance):
+def _iterative_solves(residual, p, s, data, c, damping, rhs, tolerance, most):
     """Per unlinked block, (J_s^T J_s + damping D) X = rhs (B, L, K) with J_s at (p, s_b),
     applied by the linearised block and its transpose, by conjugate gradients preconditioned
     by the kept c (B, L, L) + damping D (D: c's diagonal); and the most iterations a block took."""
@@ -202,6 +202,7 @@ def _iterative_solves(residual, p, s, data, c, damping, rhs, tolerance):
             lambda r: jax.scipy.linalg.cho_solve(factor, r),
             rhs_b,
             tolerance,
+            most,
         )
 
     solved, iterations = jax.lax.map(block, (s, data, c, scale, rhs))
@@ -309,7 +310,9 @@ def block_levenberg_marquardt(
     then p is within about sqrt(NOISE_FRACTION) standard errors of the minimum, and
     further steps (linear convergence when the residuals are noise, not zero) move it
     by amounts no one can measure; or when the cost has fallen below `ROUND_OFF` of its
-    first value (exact data, fitted to round-off). `bounds`: (low, high), each (P,), a box p
+    first value (exact data, fitted to round-off); without `bounds`, also when a step fails
+    and the undamped step is predicted to lower the cost by less than `NOISE_FRACTION` of the
+    noise variance. `bounds`: (low, high), each (P,), a box p
     stays in (a value reaching its bound is held there while the others move). `frozen`
     (unlinked blocks only): take the blocks' J_s^T J_s only to precondition solves by
     conjugate gradients (module docstring)."""
@@ -321,6 +324,7 @@ def block_levenberg_marquardt(
     pieces_of, cost_of, solve_of, light_of, iterative_of = _compiled(residual, linked)
     on = jnp.asarray(links)
     spent = [0.0]  # with `frozen`: the solves' cost since the Jacobians were taken, in their units
+    capped = [False]  # with `frozen`: the last solve ran out of iterations
     per_iteration = CG_COST * (p.size + 1) / (p.size + s.shape[1])
 
     def pieces_fn(p, s, d, kept=None):
@@ -337,8 +341,9 @@ def block_levenberg_marquardt(
         if frozen:  # the blocks' systems as they are at (p, s), preconditioned by the kept ones
             rhs = _right_sides(pieces[2], pieces[5])
             tolerance = CG_STEP_TOLERANCE if damping else CG_TOLERANCE  # a step, or the answer
-            solved, iterations = iterative_of(p, s, data, pieces[3], damping, rhs, tolerance)
+            solved, iterations = iterative_of(p, s, data, pieces[3], damping, rhs, tolerance, CG_ITERATIONS)
             spent[0] += int(iterations) * per_iteration
+            capped[0] = int(iterations) >= CG_ITERATIONS
         bounded = () if low is None else (low - p, high - p)
         return solve_of(pieces, damping, on.astype(s.dtype), *bounded, solved=solved)
 
@@ -357,13 +362,10 @@ def block_levenberg_marquardt(
             if np.isfinite(new_cost) and new_cost < cost:
                 accepted = True
                 break
-            if (
-                attempt == 0
-                and damping <= GAUSS_NEWTON
-                and low is None
-                and predicted <= NOISE_FRACTION * cost / freedom
-            ):
-                break  # not even the Gauss-Newton step could lower the cost by a measurable amount
+            floor = NOISE_FRACTION * cost / freedom  # a measurable fall
+            if attempt == 0 and low is None and predicted <= floor:  # (a damped step's fall is at most GN's)
+                if solve(pieces, 0.0, p, s)[3] <= floor and not capped[0]:
+                    break  # not even the Gauss-Newton step could lower the cost measurably
             damping *= 10.0
         if not accepted:
             break
@@ -384,4 +386,6 @@ def block_levenberg_marquardt(
         ):
             break
     _, _, reduced, _ = solve(pieces, 0.0, p, s)
+    if capped[0]:  # the iterations ran out: the answer's reduced matrix from its full Jacobian
+        reduced = solve_of(pieces_of(p, s, data, on), 0.0, on.astype(s.dtype))[2]
     return BlockSolution(np.asarray(p), np.asarray(s), history, cost, np.asarray(reduced), count * s.shape[0])
