@@ -357,7 +357,7 @@ def block_levenberg_marquardt(
     for _ in range(iterations):
         accepted = False
         for attempt in range(12):
-            dp, ds, reduced, predicted = solve(pieces, damping, p, s)
+            dp, ds, _, predicted = solve(pieces, damping, p, s)
             new_cost = float(cost_fn(p + dp, s + ds, data))
             if np.isfinite(new_cost) and new_cost < cost:
                 accepted = True
