@@ -28,6 +28,9 @@ class FitProgress:
         wall_s: time spent so far [s].
         horizon: frames the final stage's misfit stays smooth over, once measured
             (`fit.horizon`; None before, or when the plan does not ask).
+        refit_frames: segment frames of a "position_shooting" stage added after the plan's last
+            one, whose answer left more misfit than the recorded positions' noise
+            (`loop._refit_from`); None when none was added.
     """
 
     stage: int
@@ -41,6 +44,7 @@ class FitProgress:
     done: bool = False
     wall_s: float = 0.0
     horizon: int | None = None
+    refit_frames: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -41,7 +41,9 @@ class FitSettings:
             segments' misfit, never a whole chaotic horizon's; `fit.shooting`), or "auto": direct up to
             `long_horizon_steps` steps without ground contact; beyond that, or when the
             target touches the ground, shooting when full states were recorded, else
-            curriculum.
+            curriculum. After shooting, when the recorded positions are noisy and the
+            plan's answer leaves more misfit than their noise, it goes on to fit the
+            segments' start positions too ("position_shooting", `fit.loop._refit_from`).
         segment_frames: frames per multiple-shooting segment.
         long_horizon_steps: targets longer than this count as long.
         tolerance: a stage stops when the loss falls below `tolerance**2` times its first value

@@ -65,6 +65,8 @@ def save_fit(
             optimizer.create_dataset("last_step", data=np.asarray(progress.last_step))
         if progress.horizon is not None:
             optimizer.attrs["horizon"] = int(progress.horizon)
+        if progress.refit_frames is not None:
+            optimizer.attrs["refit_frames"] = int(progress.refit_frames)
         theta = optimizer.create_group("theta")
         for n in progress.theta:  # the log parameters, and a fitted start state and driven paths
             theta.create_dataset(n, data=np.asarray(progress.theta[n]))
@@ -123,6 +125,7 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
             done=bool(f.attrs["done"]),
             wall_s=float(optimizer.attrs["wall_s"]),
             horizon=int(optimizer.attrs["horizon"]) if "horizon" in optimizer.attrs else None,
+            refit_frames=int(optimizer.attrs["refit_frames"]) if "refit_frames" in optimizer.attrs else None,
         )
 
 
