@@ -6,7 +6,8 @@ For each case, draws truths (log-uniform in the case's range below) and starts (
 only, or positions and velocities of every particle: the `_velocities` cases), with 0 or 1%
 noise, and fits it as the experiment file says (free segment states for positions-only
 targets with contact or long horizons; "auto" with recorded velocities: shooting, then the
-final stage over the horizon the misfit stays smooth over; the cloth: "auto", which fits
+final stage over the horizon the misfit stays smooth over, then, where that answer leaves
+more misfit than the positions' noise, position_shooting; the cloth: "auto", which fits
 its whole smooth horizon directly). A draw succeeds when every value is within 2% of the
 truth (no noise) or within 3 reported standard errors (noise; the standard errors are of
 the log values, so the log of fitted / true is compared). Prints the success rate, the

@@ -75,6 +75,8 @@ def test_experiment_with_one_percent_noise(experiments, name):
     truth = experiment.true_values
     target = experiment.observations()
     result = js.fit(experiment.scene, target, experiment.params, experiment.init, experiment.settings)
+    # each plan's answer explains the data to their noise: none goes on to fit the starts
+    assert "position_shooting" not in [s.kind for s in result.stages], result.stages
     report = result.identifiability
     for n, error in result.relative_errors().items():
         se = float(report.standard_error[n])

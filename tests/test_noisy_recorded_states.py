@@ -1,0 +1,90 @@
+"""Recorded states whose positions are noisy: their noise measured with segments' starts
+fitted, against the variance drawn; "auto" going on to fit the starts where its answer leaves
+more than that noise, and not where it does not; the decision kept in fit files."""
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxspring as js
+from jaxspring.fit.position_shooting import start_fitted_noise
+from jaxspring.fit.results import FitProgress
+from jaxspring.fit.settings import plan_stages
+from jaxspring.io.fit_file import load_fit_progress, save_fit
+
+jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="module")
+def noisy_small_jelly():
+    """The small spinning jelly landing over 0.5 s, positions and velocities recorded, 1% noise
+    on the positions (seed 1), and its truth."""
+    experiment = js.load_experiment(Path(__file__).parents[1] / "fitting" / "cases" / "small_jelly_1s.toml")
+    truth = {"ks": 250.0, "kd": 0.05}
+    obs = js.synthetic_observations(experiment.scene, truth, steps=500, save_every=10, noise_relative=0.01, seed=1)
+    return experiment.scene, obs, truth
+
+
+def test_the_noise_of_recorded_positions_is_measured_with_their_starts_fitted(noisy_small_jelly):
+    """`start_fitted_noise` against the variance the noise was drawn with: within 10% at the
+    truth and at kd 5x its truth (a short segment with fitted starts hardly sees kd), its
+    degrees of freedom the data values less the fitted start values; on exact data, round-off."""
+    scene, obs, truth = noisy_small_jelly
+    for values in (truth, {**truth, "kd": 5 * truth["kd"]}):
+        variance, freedom = start_fitted_noise(scene, obs, ["ks", "kd"], values)
+        assert abs(variance / obs.noise_std**2 - 1) < 0.1, (values, variance / obs.noise_std**2)
+        # segments 0, 2 and 4 of 5: 10, 10 and 11 frames (the last owns the end) of 27 free particles
+        assert freedom == (10 + 10 + 11) * 27 * 3 - 3 * 27 * 3
+    exact = js.synthetic_observations(scene, truth, steps=500, save_every=10)
+    motion = np.sqrt(np.mean((np.asarray(exact.x) - np.asarray(exact.x)[:1]) ** 2))
+    assert start_fitted_noise(scene, exact, ["ks", "kd"], truth)[0] < (1e-10 * motion) ** 2
+
+
+def stopped_at_the_final_stage(scene, obs, values, **settings):
+    """A fit stopped at the start of the plan's final stage with `values`, its iterations
+    spent, so that stage returns `values` and the fit decides what comes next; and the plan."""
+    settings = js.FitSettings(iterations=100, **settings)
+    planned = plan_stages(obs, settings, scene, values=2)
+    theta = {n: jnp.log(jnp.asarray([float(v)])) for n, v in values.items()}
+    progress = FitProgress(1, settings.iterations, theta, None, [], {n: [] for n in values}, [])
+    saved = []
+    result = js.fit_batch(
+        scene, [obs], list(values), [values], settings, progress=progress, on_iteration=lambda p, _: saved.append(p)
+    )[0]
+    return result, planned, saved[-1]
+
+
+def test_auto_fits_the_starts_when_the_answer_leaves_more_than_the_noise(noisy_small_jelly, tmp_path):
+    """From kd 7x its truth (the whole horizon's misfit there exceeds the noise), "auto" adds a
+    "position_shooting" stage and its answer comes within 3 standard errors of the truth; the
+    fit file keeps the decision, so the finished fit read back has the same stages and answer.
+    From the truth (the misfit is the noise), or with the strategy "shooting" named, the plan
+    ends as planned."""
+    scene, obs, truth = noisy_small_jelly
+    wrong = {**truth, "kd": 7 * truth["kd"]}
+    result, planned, progress = stopped_at_the_final_stage(scene, obs, wrong)
+    assert [s.kind for s in planned] == ["shooting", "ensemble"]
+    assert [s.kind for s in result.stages] == ["shooting", result.stages[1].kind, "position_shooting"]
+    assert result.stages[1].kind in ("ensemble", "shooting")  # the final stage over the measured horizon
+    report = result.identifiability
+    assert report.objective.endswith(
+        "left more misfit than the recorded positions' noise: their starts were fitted too)"
+    )
+    for n in truth:
+        z = np.log(float(result.final[n]) / truth[n]) / float(report.relative_standard_error[n])
+        assert abs(z) < 3, (n, result.final[n], report.relative_standard_error[n])
+    assert progress.done and progress.refit_frames == 10
+    save_fit(tmp_path / "fit.h5", {"a": 1}, list(truth), wrong, progress)
+    loaded = load_fit_progress(tmp_path / "fit.h5", {"a": 1}, list(truth))
+    again = js.fit_batch(scene, [obs], list(truth), [wrong], progress=loaded)[0]
+    assert again.stages[: len(result.stages)] == result.stages
+    for n in truth:  # settled again from the recorded starts: the same answer, to a small part of its error
+        shift = np.log(float(again.final[n]) / float(result.final[n]))
+        assert abs(shift) < 0.1 * float(report.relative_standard_error[n]), (n, shift)
+    for values, strategy in ((truth, "auto"), (wrong, "shooting")):
+        result, planned, progress = stopped_at_the_final_stage(scene, obs, values, strategy=strategy)
+        assert [s.kind for s in result.stages] == [s.kind for s in planned[:1]] + [result.stages[1].kind]
+        assert progress.refit_frames is None
