@@ -14,7 +14,7 @@ from .settings import Stage
 
 
 def ensemble_step_function(scene: Scene, observations: Observations, names, stage: Stage, settings, batched, theta):
-    """(step, init) of an ensemble stage, with the signatures of `step_function`'s.
+    """(step, init) of an ensemble stage, with the signatures of `step.step_function`'s.
 
     Gauss-Newton on the loss smoothed over a cloud of log-parameter values u + A z (z a
     fixed symmetric set of standard normal points, A the spread). A step rolls out the

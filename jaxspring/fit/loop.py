@@ -10,7 +10,6 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from ..errors import InputError
 from ..resources import check_compiled
@@ -20,46 +19,15 @@ from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
 from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
 from .identifiability import gauss_newton_polish, identifiability, start_polish
+from .noisy_states import refit_from, why_refit
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
-from .position_shooting import start_fitted_noise
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
 from .settings import SEGMENT_STATES, FitSettings, Stage, needs_horizon, plan_stages
 from .shooting import describe, free_shooting_stage, segment_fitter
-
-
-def _optimizer(settings: FitSettings):
-    if settings.optimizer == "lbfgs":
-        return optax.lbfgs()
-    return optax.chain(optax.clip_by_global_norm(settings.clip), optax.adam(settings.learning_rate))
-
-
-def _strong(leaf):
-    leaf = jnp.asarray(leaf)
-    return jax.lax.convert_element_type(leaf, leaf.dtype) if leaf.weak_type else leaf
-
-
-def step_function(loss, settings: FitSettings, data_batched: bool):
-    optimizer = _optimizer(settings)
-
-    def single(theta, opt_state, data):
-        value_fn = lambda th: loss(th, data)  # noqa: E731
-        if settings.optimizer == "lbfgs":
-            value, grad = optax.value_and_grad_from_state(value_fn)(theta, state=opt_state)
-            updates, opt_state = optimizer.update(grad, opt_state, theta, value=value, grad=grad, value_fn=value_fn)
-        else:
-            value, grad = jax.value_and_grad(value_fn)(theta)
-            updates, opt_state = optimizer.update(grad, opt_state, theta)
-        return optax.apply_updates(theta, updates), opt_state, value
-
-    step = jax.jit(jax.vmap(single, in_axes=(0, 0, 0 if data_batched else None)))
-    # strong dtypes: an optimizer state whose leaves start weakly typed (optax's line-search
-    # info) comes back strongly typed from the first step, and the step would compile twice
-    init = jax.jit(jax.vmap(lambda theta: jax.tree_util.tree_map(_strong, optimizer.init(theta))))
-    value = jax.jit(jax.vmap(loss, in_axes=(0, 0 if data_batched else None)))
-    return step, init, value
+from .step import step_function
 
 
 def fit(
@@ -203,7 +171,7 @@ def fit_batch(
         progress.last_step = None
         progress.done = progress.stage >= len(stages)
         if progress.done and progress.refit_frames is None:
-            start = _refit_from(run, observations, stages, progress)
+            start = refit_from(scene, observations, names, settings, stages, progress, data)
             if start is not None:  # the recorded states are noisy: fit their positions too
                 progress.theta, progress.refit_frames, progress.done = start, stages[0].frames, False
                 stages.append(Stage("position_shooting", progress.refit_frames))
@@ -211,65 +179,6 @@ def fit_batch(
         if on_iteration:
             on_iteration(progress, stages)
     return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
-
-
-NOISE_FREE = 1e-4
-"""Recorded positions whose noise (`start_fitted_noise`) has an RMS below this fraction of the
-target's RMS displacement count as noise-free (round-off, float32 files): `_refit_from`
-leaves their fit as it is."""
-
-MISFIT_OVER_NOISE = 1.1
-"""An answer whose misfit exceeds the noise variance (`start_fitted_noise`) by more than this
-factor, and by more than three standard deviations of that estimate, does not explain the
-data: with 1% noise on the 7 x 6 x 5 jelly over 1 s, answers in wrong dips of the whole
-horizon's misfit left 1.24x and 1.77x, a good one 1.00x."""
-
-
-def _refit_from(run: _Run, observations: list, stages: list[Stage], progress: FitProgress) -> dict | None:
-    """Where a plan ending on recorded states whose positions are noisy goes on to fit the
-    segments' start positions ("position_shooting"), or None where it ends as planned.
-
-    It goes on when "auto" ran multiple shooting from recorded states, then a final stage
-    that does not fit the starts (the whole horizon, or longer segments from the recorded
-    states), and for some member the plan's answer (`best_of_stages`) leaves more misfit on
-    that stage's objective than the positions' noise variance allows: more than
-    `MISFIT_OVER_NOISE` times it plus three standard deviations of its estimate, the noise
-    being above `NOISE_FREE`. The noise variance is measured at the answer by fitting the
-    start positions of a few segments (`start_fitted_noise`; where that would take too much
-    memory, the plan ends as planned). Returns the answer (log values per member), which the
-    new stage starts from.
-
-    What it catches: segments from noisy recorded states leave their starts' noise in their
-    misfit (1.3-1.5x the noise on the 7 x 6 x 5 jelly over 1 s with 1% noise, at any answer)
-    and bias the damping, so after them it always goes on; a whole horizon's misfit over
-    several impacts has dips whose answers leave more than the noise (that jelly: kd 7x and
-    22x its truth at 1.24x and 1.77x the noise, with standard errors of 0.02%); and a real
-    recording's noisy first frame makes a whole-horizon stage from it leave more than the
-    noise too. A whole-horizon answer that leaves the noise (the 0.7 s jelly) is kept, at
-    the cost of the measurement (25-30 s for that jelly).
-
-    Example:
-        >>> _refit_from(run, [obs], [Stage("shooting", 10), Stage("ensemble", 100)], progress)
-    """
-    scene, names, settings, final = run.scene, run.names, run.settings, stages[-1]
-    if settings.strategy != "auto" or stages[0].kind != "shooting" or final.kind in SEGMENT_STATES:
-        return None
-    _, _, value = step_function(loss_function(scene, observations[0], names, final), settings, run.batched_data)
-    theta, losses = best_of_stages(progress, names, value, run.data)
-    for member, loss in enumerate(losses):
-        target = observations[member if run.batched_data else 0]
-        x = np.asarray(target.x, dtype=float)
-        floor = (NOISE_FREE * float(np.sqrt(np.mean((x - x[:1]) ** 2)))) ** 2
-        if not loss > MISFIT_OVER_NOISE * floor:
-            continue
-        values = {n: np.exp(np.asarray(theta[n][member], dtype=float)) for n in names}
-        noise = start_fitted_noise(scene, target, names, values, stages[0].frames)
-        if noise is None:
-            continue
-        variance, freedom = noise
-        if variance > floor and loss > variance * (MISFIT_OVER_NOISE + 3 * np.sqrt(2 / freedom)):
-            return theta
-    return None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -437,7 +346,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
                 normal=fit.reduced,
                 nuisance=fit.unknowns,
                 noise_variance=fit.loss * fit.count / dof,
-                objective=describe(fit) + _why_refit(stages, progress, horizon_words),
+                objective=describe(fit) + why_refit(stages, progress, horizon_words),
             )
             estimated = {
                 "segment_x": np.asarray(fit.starts.x),
@@ -465,16 +374,3 @@ def _results(scene, observations, names, start_values, settings, stages, progres
             )
         )
     return results
-
-
-def _why_refit(stages: list[Stage], progress: FitProgress, horizon_words: str) -> str:
-    """Why the final segment-state stage was chosen, in words (after its objective)."""
-    measured = f"{horizon_words}; " if progress.horizon is not None else ""
-    if progress.refit_frames is not None:
-        before = stages[-2]
-        who = "of a member of this batch " if np.shape(progress.theta[next(iter(progress.theta))])[0] > 1 else ""
-        return (
-            f" ({measured}the answer {who}of the {before.kind} stage over {before.frames} frames left more misfit"
-            " than the recorded positions' noise: their starts were fitted too)"
-        )
-    return f" ({horizon_words})" if progress.horizon is not None else ""

@@ -30,7 +30,7 @@ class FitProgress:
             (`fit.horizon`; None before, or when the plan does not ask).
         refit_frames: segment frames of a "position_shooting" stage added after the plan's last
             one, whose answer left more misfit than the recorded positions' noise
-            (`loop._refit_from`); None when none was added.
+            (`noisy_states.refit_from`); None when none was added.
     """
 
     stage: int

@@ -43,7 +43,7 @@ class FitSettings:
             target touches the ground, shooting when full states were recorded, else
             curriculum. After shooting, when the recorded positions are noisy and the
             plan's answer leaves more misfit than their noise, it goes on to fit the
-            segments' start positions too ("position_shooting", `fit.loop._refit_from`).
+            segments' start positions too ("position_shooting", `fit.noisy_states.refit_from`).
         segment_frames: frames per multiple-shooting segment.
         long_horizon_steps: targets longer than this count as long.
         tolerance: a stage stops when the loss falls below `tolerance**2` times its first value
