@@ -5,6 +5,7 @@ positions fitted with the parameters and its velocities as recorded."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -102,19 +103,34 @@ def start_fitted_noise(
     count, unknowns = seg.firsts.size, seg.free.size * 3
     if seg.owned.shape[1] * seg.observed * 3 * unknowns * 8 > NOISE_MEMORY:
         return None
-    residual = jax.jit(seg.residual)
-    jacobian = jax.jit(jax.jacfwd(seg.residual, argnums=1))
+    model, every = scene.model.forward_mode(), observations.save_every
+    params = model.params_with(scene.params, {n: jnp.asarray(values[n], dtype=float) for n in names})
+    fixed = (model, params, jnp.asarray(observations.particles), jnp.asarray(seg.free))
     squares, freedom = 0.0, 0
     for b in np.unique(np.linspace(0, count - 1, min(NOISE_SEGMENTS, count)).round().astype(int)):
         data = {key: value[b] for key, value in seg.data.items()}
-        s = jnp.zeros(unknowns, dtype=seg.data["gx"].dtype)
-        jac = jacobian(seg.p0, s, data)  # taken once: the steps after the first are chord steps
-        factor = jax.scipy.linalg.cho_factor(jac.T @ jac)
-        for _ in range(NOISE_STEPS):
-            s = s - jax.scipy.linalg.cho_solve(factor, jac.T @ residual(seg.p0, s, data))
-        squares += float(jnp.sum(residual(seg.p0, s, data) ** 2))
+        squares += float(_start_fitted_squares(*fixed, data, frames=seg.frames, every=every))
         freedom += int(seg.owned[b].sum()) * seg.observed * 3 - unknowns
     return squares / max(freedom, 1), max(freedom, 1)
+
+
+@functools.partial(jax.jit, static_argnames=("frames", "every"))
+def _start_fitted_squares(model, params, particles, free, data, frames, every):
+    """One segment's residual sum of squares with its start positions fitted (`NOISE_STEPS`
+    chord steps from the recorded start, the Jacobian taken there) and `params` held; a
+    function of arrays only, so one compiled copy serves every segment, member and call."""
+
+    def residual(s_b):
+        start = data["gx"].at[free].add(s_b.reshape(-1, 3))
+        traj = rollout(model, params, State(x=start, v=data["gv"]), steps=frames * every, save_every=every)
+        return jnp.where(data["owned"][:, None, None], traj.x[:, particles] - data["x"], 0.0).reshape(-1)
+
+    s = jnp.zeros(free.size * 3, dtype=data["gx"].dtype)
+    jac = jax.jacfwd(residual)(s)  # taken once: the steps after the first are chord steps
+    factor = jax.scipy.linalg.cho_factor(jac.T @ jac)
+    for _ in range(NOISE_STEPS):
+        s = s - jax.scipy.linalg.cho_solve(factor, jac.T @ residual(s))
+    return jnp.sum(residual(s) ** 2)
 
 
 @dataclasses.dataclass(frozen=True)
