@@ -4,12 +4,16 @@ import os
 from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
-# One compilation cache for the whole run: both test workers, and the CLI processes and
+# One compilation cache for the test runs: both test workers, and the CLI processes and
 # notebook kernels the tests start, load what another compiled instead of compiling it
-# again (a `jaxspring fit` process: 15 s -> 8 s). Its entries are keyed by the compiled
-# program, so a stale entry is never used; CI starts from a clean clone, without one.
+# again (a `jaxspring fit` process: 15 s -> 8 s). Entries are keyed by the compiled program,
+# so a stale one is never used; a size limit turns on JAX's file lock, so no process reads
+# an entry another is still writing. It is kept between runs (`rm -rf .pytest_cache/jax`
+# empties it; `pytest --cache-clear` does not); CI starts from a clean clone, without one.
+# Processes the tests kill get a cache of their own (tests/test_kill.py).
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 * 2**30))
 
 import jax  # noqa: E402
 

@@ -19,6 +19,13 @@ KILLS = 6  # each kill is a process start-up: 6 of each keep the file under 2 mi
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
 
 
+@pytest.fixture(autouse=True)
+def own_compilation_cache(tmp_path_factory, monkeypatch):
+    """The processes killed here get a compilation cache of their own: a kill may land while
+    one writes an entry, which must not reach the other tests' processes."""
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path_factory.mktemp("compilation-cache")))
+
+
 def _start(*args, cwd):
     return subprocess.Popen(
         [sys.executable, "-m", "jaxspring", *args], cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
@@ -79,7 +86,7 @@ def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_pa
     experiment.write_text(
         'scene = "mass_spring"\n[target]\nsteps = 400\nsave_every = 10\nnoise = 0.01\n'
         '[fit]\nparams = ["ks", "kd"]\ninit = { ks = 25.0, kd = 0.02 }\niterations = 40\n'
-    )  # kills land in start-up, compiling, iterations and the final write alike
+    )  # kills land in start-up, compiling (or loading what the first run compiled), iterations and the final write
     fit = ["fit", "exp.toml", "--quiet", "--checkpoint-every", "1"]
     duration = _timed(*fit, "--out", "straight.h5", cwd=tmp_path)
     kills = 0

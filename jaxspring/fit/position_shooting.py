@@ -121,9 +121,7 @@ def _start_fitted_squares(model, params, particles, free, data, frames, every):
     function of arrays only, so one compiled copy serves every segment, member and call."""
 
     def residual(s_b):
-        start = data["gx"].at[free].add(s_b.reshape(-1, 3))
-        traj = rollout(model, params, State(x=start, v=data["gv"]), steps=frames * every, save_every=every)
-        return jnp.where(data["owned"][:, None, None], traj.x[:, particles] - data["x"], 0.0).reshape(-1)
+        return _segment_misfit(model, params, particles, free, s_b, data, frames, every)
 
     s = jnp.zeros(free.size * 3, dtype=data["gx"].dtype)
     jac = jax.jacfwd(residual)(s)  # taken once: the steps after the first are chord steps
@@ -174,11 +172,24 @@ def _recorded_segments(scene, observations: Observations, names, values: dict, s
     }
 
     def start(s_b, d):
-        return d["gx"].at[free].add(s_b.reshape(-1, 3))
+        return _segment_start(free, s_b, d)
 
     def residual(p, s_b, d):
         params = model.params_with(base, {n: jnp.exp(v) for n, v in unravel(p).items()})
-        traj = rollout(model, params, State(x=start(s_b, d), v=d["gv"]), steps=k * every, save_every=every)
-        return jnp.where(d["owned"][:, None, None], traj.x[:, particles] - d["x"], 0.0).reshape(-1)
+        return _segment_misfit(model, params, particles, free, s_b, d, k, every)
 
     return _Segments(p0, unravel, residual, start, data, owned, firsts, free, int(particles.size), k)
+
+
+def _segment_start(free, s_b, d):
+    """A segment's start positions: its recorded ones, the free particles' offset by s_b."""
+    return d["gx"].at[free].add(s_b.reshape(-1, 3))
+
+
+def _segment_misfit(model, params, particles, free, s_b, d, frames, every):
+    """A segment's misfit to its owned frames, from its recorded start with the free
+    particles' positions offset by s_b and its recorded velocities, flattened."""
+    traj = rollout(
+        model, params, State(x=_segment_start(free, s_b, d), v=d["gv"]), steps=frames * every, save_every=every
+    )
+    return jnp.where(d["owned"][:, None, None], traj.x[:, particles] - d["x"], 0.0).reshape(-1)

@@ -223,7 +223,9 @@ def register_term(term, parameters: tuple = ()) -> None:
     A term is a hashable object with `name`, `force(model, params, x, v) -> (N, 3)` [N]
     and `energy(model, params, x) -> scalar` [J]; with `grid_force(model, params, x, v)`
     in grid layout (3, *shape) the grid steppers run it too. `parameters` names the
-    `Params` fields it reads. Steppers that do not run it refuse models that use it.
+    `Params` fields it reads. Steppers that do not run it refuse models that use it. A
+    force reads neither `model.dt` nor `model.integrator` (the stability analyser
+    linearises it once for every time step and integrator).
 
     Example:
         >>> register_term(LinearDrag(), parameters=("cd",))

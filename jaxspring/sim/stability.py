@@ -81,7 +81,7 @@ def estimate_stability(model: Model, params: Params, state: State, iterations: i
         >>> js.estimate_stability(scene.model, scene.params, scene.state).dt_bound
     """
     # the force reads neither dt nor the integrator: one compiled iteration serves every choice
-    linear = dataclasses.replace(model.forward_mode(), dt=1.0, integrator=as_integrator("semi_implicit_euler"))
+    linear = model.forward_mode().replace(backend="jax", dt=1.0, integrator="semi_implicit_euler")
     omega_sq, damping = _power_iterations(linear, params, state, iterations)
     omega_sq, damping = float(omega_sq), float(damping)
     if model.has("ground"):
