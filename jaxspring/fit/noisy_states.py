@@ -54,7 +54,7 @@ def refit_from(
     22x its truth at 1.24x and 1.77x the noise, with standard errors of 0.02%); and a real
     recording's noisy first frame makes a whole-horizon stage from it leave more than the
     noise too. A whole-horizon answer that leaves the noise (the 0.7 s jelly) is kept, at
-    the cost of the measurement (25-30 s for that jelly).
+    the cost of the measurement (12 s of that jelly's 66 s fit).
 
     Example:
         >>> refit_from(scene, [obs], names, settings, [Stage("shooting", 10), Stage("ensemble", 100)], progress, data)
