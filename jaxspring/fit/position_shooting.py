@@ -171,13 +171,11 @@ def _recorded_segments(scene, observations: Observations, names, values: dict, s
         "gv": jnp.asarray(states.v)[firsts],
     }
 
-    def start(s_b, d):
-        return _segment_start(free, s_b, d)
-
     def residual(p, s_b, d):
         params = model.params_with(base, {n: jnp.exp(v) for n, v in unravel(p).items()})
         return _segment_misfit(model, params, particles, free, s_b, d, k, every)
 
+    start = functools.partial(_segment_start, free)
     return _Segments(p0, unravel, residual, start, data, owned, firsts, free, int(particles.size), k)
 
 
