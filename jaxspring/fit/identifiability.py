@@ -175,6 +175,7 @@ def identifiability(
     """
     names = tuple(names)
     flat, unravel, residuals = residual_function(scene, observations, names, values, segment)
+    residuals = jax.jit(residuals)  # compiled once: here and for the roughness check
     theta = unravel(flat)
     if flat.shape[0] > max_parameters:
         return None
@@ -227,7 +228,7 @@ def identifiability(
         if not dead[i] and log_se[i] > 0.5:
             warnings.append(f"{label} is poorly determined: standard error {100 * log_se[i]:.0f}% of its value")
     if whole:  # residuals simulated here (the whole horizon, or its segments): check the quadratic model
-        warnings += _roughness_warnings(jax.jit(residuals), flat, r, jac, log_se, labels)
+        warnings += _roughness_warnings(residuals, flat, r, jac, log_se, labels)
     for i in range(dims):
         for j in range(i + 1, dims):
             if abs(correlation[i, j]) > 0.95 and not (dead[i] or dead[j]):
