@@ -121,3 +121,26 @@ def test_auto_fits_the_starts_when_the_answer_leaves_more_than_the_noise(noisy_s
         result, planned, progress = stopped_at_the_final_stage(scene, obs, values, strategy=strategy)
         assert [s.kind for s in result.stages] == [s.kind for s in planned[:1]] + [result.stages[1].kind]
         assert progress.refit_frames is None
+
+
+def test_auto_fits_the_starts_in_place_of_longer_segments_from_noisy_states(noisy_small_jelly, tmp_path):
+    """Where the measured horizon is shorter than the target (a wide spread: 8 frames of 50),
+    the final stage would be longer segments from the noisy recorded states, which leave
+    their starts' noise whatever the answer: "auto" decides at the shooting answer and fits
+    the starts in their place, from the truth as from kd 7x it, within 3 standard errors of
+    the truth; a fit resumed from its file runs the same stages."""
+    scene, obs, truth = noisy_small_jelly
+    for values in (truth, {**truth, "kd": 7 * truth["kd"]}):
+        result, planned, progress = stopped_at_the_final_stage(scene, obs, values, horizon_spread=0.6)
+        assert [s.kind for s in planned] == ["shooting", "ensemble"]
+        assert progress.horizon < 50 and progress.refit_frames == 10
+        assert [(s.kind, s.frames) for s in result.stages] == [("shooting", 10), ("position_shooting", 10)]
+        report = result.identifiability
+        assert "the answer of the shooting stage over 10 frames left more misfit" in report.objective
+        for n in truth:
+            z = np.log(float(result.final[n]) / truth[n]) / float(report.relative_standard_error[n])
+            assert abs(z) < 3, (n, values, result.final[n], report.relative_standard_error[n])
+    save_fit(tmp_path / "fit.h5", {"a": 1}, list(truth), values, progress)
+    loaded = load_fit_progress(tmp_path / "fit.h5", {"a": 1}, list(truth))
+    again = js.fit_batch(scene, [obs], list(truth), [values], js.FitSettings(horizon_spread=0.6), progress=loaded)[0]
+    assert again.stages == result.stages

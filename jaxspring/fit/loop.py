@@ -19,7 +19,7 @@ from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
 from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
 from .identifiability import gauss_newton_polish, identifiability, start_polish
-from .noisy_states import refit_from, why_refit
+from .noisy_states import refit_from, refit_stages, why_refit
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
@@ -152,13 +152,17 @@ def fit_batch(
     if progress.horizon is not None and needs_horizon(stages, reference):  # resumed, or a finished fit read back
         stages[-1] = horizon_stage(scene, observations, names, settings, stages[-1], progress.horizon)
     if progress.refit_frames is not None:
-        stages.append(Stage("position_shooting", progress.refit_frames))
+        refit_stages(stages, progress.refit_frames)
     segment_fits = None
     while not progress.done:
         if progress.stage == len(stages) - 1 and needs_horizon(stages, reference):
             if progress.horizon is None:  # measured once, at the shooting answer; a resumed fit reads it
                 progress.horizon = measure_horizon(scene, observations, names, settings.horizon_spread, progress.theta)
             stages[-1] = horizon_stage(scene, observations, names, settings, stages[-1], progress.horizon)
+            start = refit_from(scene, observations, names, settings, stages, progress, data)
+            if start is not None:  # segments from noisy recorded states: their starts are fitted instead
+                progress.theta, progress.refit_frames = start, stages[0].frames
+                refit_stages(stages, progress.refit_frames)
         stage = stages[progress.stage]
         if stage.kind in SEGMENT_STATES:  # Levenberg-Marquardt with the segments' states, per member
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)
@@ -174,7 +178,7 @@ def fit_batch(
             start = refit_from(scene, observations, names, settings, stages, progress, data)
             if start is not None:  # the recorded states are noisy: fit their positions too
                 progress.theta, progress.refit_frames, progress.done = start, stages[0].frames, False
-                stages.append(Stage("position_shooting", progress.refit_frames))
+                refit_stages(stages, progress.refit_frames)
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)

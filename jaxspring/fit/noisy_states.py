@@ -34,33 +34,42 @@ def refit_from(
     progress: FitProgress,
     data,
 ) -> dict | None:
-    """Where a plan ending on recorded states whose positions are noisy goes on to fit the
-    segments' start positions ("position_shooting"), or None where it ends as planned.
+    """Where a plan on recorded states whose positions are noisy goes on to fit the segments'
+    start positions ("position_shooting"), or None where it ends as planned.
 
-    It goes on when "auto" ran multiple shooting from recorded states, then a final stage
-    that does not fit the starts (the whole horizon, or longer segments from the recorded
-    states), and for some member the plan's answer (`best_of_stages`) leaves more misfit on
-    that stage's objective than the positions' noise variance allows: more than
-    `MISFIT_OVER_NOISE` times it plus three standard deviations of its estimate, the noise
-    being above `NOISE_FREE`. The noise variance is measured at the answer by fitting the
-    start positions of a few segments (`start_fitted_noise`). Returns the answer (log values per member), which the
-    new stage starts from.
+    It goes on when "auto" ran multiple shooting from recorded states, and for some member
+    the plan's answer (`best_of_stages`) leaves more misfit on the objective below than the
+    positions' noise variance allows: more than `MISFIT_OVER_NOISE` times it plus three
+    standard deviations of its estimate, the noise being above `NOISE_FREE`. The objective
+    is the final stage's, asked once the plan is done, where that stage does not start from
+    the recorded states (the whole horizon); where it would be longer segments from them
+    (`over_horizon`), it is asked before that stage, at the shooting stage's answer, on the
+    shooting stage's objective: segments from noisy states leave their starts' noise in
+    their misfit whatever their length, so the longer segments would be refitted after
+    they ran; the fit goes on in their place (`refit_stages`). The noise variance is
+    measured at the answer by fitting the start positions of a few segments
+    (`start_fitted_noise`). Returns the answer (log values per member), which the new stage
+    starts from.
 
     What it catches: segments from noisy recorded states leave their starts' noise in their
     misfit (1.3-1.5x the noise on the 7 x 6 x 5 jelly over 1 s with 1% noise, at any answer)
-    and bias the damping, so after them it always goes on; a whole horizon's misfit over
-    several impacts has dips whose answers leave more than the noise (that jelly: kd 7x and
-    22x its truth at 1.24x and 1.77x the noise, with standard errors of 0.02%); and a real
-    recording's noisy first frame makes a whole-horizon stage from it leave more than the
-    noise too. A whole-horizon answer that leaves the noise (the 0.7 s jelly) is kept, at
-    the cost of the measurement (1.3 s of that jelly's 18 s fit).
+    and bias the damping; a whole horizon's misfit over several impacts has dips whose
+    answers leave more than the noise (that jelly: kd 7x and 22x its truth at 1.24x and
+    1.77x the noise, with standard errors of 0.02%); and a real recording's noisy first
+    frame makes a whole-horizon stage from it leave more than the noise too. A whole-horizon
+    answer that leaves the noise (the 0.7 s jelly) is kept, at the cost of the measurement
+    (1.3 s of that jelly's 18 s fit).
 
     Example:
         >>> refit_from(scene, [obs], names, settings, [Stage("shooting", 10), Stage("ensemble", 100)], progress, data)
     """
     if settings.strategy != "auto" or stages[0].kind != "shooting" or stages[-1].kind in SEGMENT_STATES:
         return None
-    value = step_function(loss_function(scene, observations[0], names, stages[-1]), settings, len(observations) > 1)[2]
+    segments_next = stages[-1].kind == "shooting"  # longer segments from the recorded states
+    if progress.done == segments_next:  # asked before such segments, after a whole horizon
+        return None
+    objective = stages[0] if segments_next else stages[-1]
+    value = step_function(loss_function(scene, observations[0], names, objective), settings, len(observations) > 1)[2]
     theta, losses = best_of_stages(progress, names, value, data)
     for member, loss in enumerate(losses):
         target = observations[member if len(observations) > 1 else 0]
@@ -73,6 +82,16 @@ def refit_from(
         if variance > floor and loss > variance * (MISFIT_OVER_NOISE + 3 * np.sqrt(2 / freedom)):
             return theta
     return None
+
+
+def refit_stages(stages: list[Stage], frames: int) -> None:
+    """Add the "position_shooting" stage `refit_from` chose to the plan (in place): in place
+    of a final stage of longer segments from the recorded states (decided before it), else
+    after the final stage. A resumed fit rebuilds its plan the same way."""
+    if stages[-1].kind == "shooting":
+        stages[-1] = Stage("position_shooting", frames)
+    else:
+        stages.append(Stage("position_shooting", frames))
 
 
 def why_refit(stages: list[Stage], progress: FitProgress, horizon_words: str) -> str:
