@@ -118,6 +118,10 @@ def test_the_measured_horizon_is_kept_for_a_resumed_fit(tmp_path):
     with h5py.File(tmp_path / "f.h5", "a") as f:  # a fit that never measured one
         del f["fit/optimizer"].attrs["horizon"]
     assert load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks"]).horizon is None
+    with h5py.File(tmp_path / "f.h5", "a") as f:  # written before the plan's rules changed
+        del f["fit/optimizer"].attrs["plan_version"]
+    with pytest.raises(js.InputError, match="planned a fit's stages otherwise"):
+        load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks"])
 
 
 def test_positions_only_targets_start_from_the_initial_state(scenes):

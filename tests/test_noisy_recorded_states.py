@@ -31,7 +31,8 @@ def noisy_small_jelly():
 def test_the_noise_of_recorded_positions_is_measured_with_their_starts_fitted(noisy_small_jelly):
     """`start_fitted_noise` against the variance the noise was drawn with: within 10% at the
     truth and at kd 5x its truth (a short segment with fitted starts hardly sees kd), its
-    degrees of freedom the data values less the fitted start values; on exact data, round-off."""
+    degrees of freedom the data values less the fitted start values; on exact data, round-off;
+    in float32 within 10% too."""
     scene, obs, truth = noisy_small_jelly
     for values in (truth, {**truth, "kd": 5 * truth["kd"]}):
         variance, freedom = start_fitted_noise(scene, obs, ["ks", "kd"], values)
@@ -41,6 +42,12 @@ def test_the_noise_of_recorded_positions_is_measured_with_their_starts_fitted(no
     exact = js.synthetic_observations(scene, truth, steps=500, save_every=10)
     motion = np.sqrt(np.mean((np.asarray(exact.x) - np.asarray(exact.x)[:1]) ** 2))
     assert start_fitted_noise(scene, exact, ["ks", "kd"], truth)[0] < (1e-10 * motion) ** 2
+    with jax.enable_x64(False):  # float32: central differences and solves to its precision
+        scene32 = js.load_experiment(Path(__file__).parents[1] / "fitting" / "cases" / "small_jelly_1s.toml").scene
+        obs32 = js.synthetic_observations(scene32, truth, steps=500, save_every=10, noise_relative=0.01, seed=1)
+        assert np.asarray(obs32.x).dtype == np.float32
+        variance, _ = start_fitted_noise(scene32, obs32, ["ks", "kd"], truth)
+        assert abs(variance / obs32.noise_std**2 - 1) < 0.1, variance / obs32.noise_std**2
 
 
 @pytest.mark.parametrize("backend", ["native", "jax"])
@@ -53,6 +60,8 @@ def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(nois
 
     scene, obs, truth = noisy_small_jelly
     scene = scene.with_backend(backend)
+    if backend == "native" and not scene.model.stepper.name.startswith("native"):
+        pytest.skip("native kernel not built here")  # CI builds it (tests/test_native.py)
     seg = _recorded_segments(scene, obs, ["ks", "kd"], truth, 10)
     data = {key: value[2] for key, value in seg.data.items()}
     model = scene.model
@@ -76,17 +85,22 @@ def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(nois
     assert fast == pytest.approx(dense, rel=1e-6), (fast, dense, before)
 
 
-def stopped_at_the_final_stage(scene, obs, values, **settings):
+def stopped_at_the_final_stage(scene, obs, values, on_iteration=None, **settings):
     """A fit stopped at the start of the plan's final stage with `values`, its iterations
-    spent, so that stage returns `values` and the fit decides what comes next; and the plan."""
+    spent, so that stage returns `values` and the fit decides what comes next; and the plan.
+    `on_iteration` sees every checkpoint too."""
     settings = js.FitSettings(iterations=100, **settings)
     planned = plan_stages(obs, settings, scene, values=2)
     theta = {n: jnp.log(jnp.asarray([float(v)])) for n, v in values.items()}
     progress = FitProgress(1, settings.iterations, theta, None, [], {n: [] for n in values}, [])
     saved = []
-    result = js.fit_batch(
-        scene, [obs], list(values), [values], settings, progress=progress, on_iteration=lambda p, _: saved.append(p)
-    )[0]
+
+    def checkpoint(p, stages):
+        saved.append(p)
+        if on_iteration:
+            on_iteration(p, stages)
+
+    result = js.fit_batch(scene, [obs], list(values), [values], settings, progress=progress, on_iteration=checkpoint)[0]
     return result, planned, saved[-1]
 
 
@@ -100,8 +114,8 @@ def test_auto_fits_the_starts_when_the_answer_leaves_more_than_the_noise(noisy_s
     wrong = {**truth, "kd": 7 * truth["kd"]}
     result, planned, progress = stopped_at_the_final_stage(scene, obs, wrong)
     assert [s.kind for s in planned] == ["shooting", "ensemble"]
-    assert [s.kind for s in result.stages] == ["shooting", result.stages[1].kind, "position_shooting"]
-    assert result.stages[1].kind in ("ensemble", "shooting")  # the final stage over the measured horizon
+    # the whole horizon measured smooth: the final stage runs over it, its answer is tested after
+    assert [s.kind for s in result.stages] == ["shooting", "ensemble", "position_shooting"]
     report = result.identifiability
     assert report.objective.endswith(
         "left more misfit than the recorded positions' noise: their starts were fitted too)"
@@ -131,7 +145,15 @@ def test_auto_fits_the_starts_in_place_of_longer_segments_from_noisy_states(nois
     the truth; a fit resumed from its file runs the same stages."""
     scene, obs, truth = noisy_small_jelly
     for values in (truth, {**truth, "kd": 7 * truth["kd"]}):
-        result, planned, progress = stopped_at_the_final_stage(scene, obs, values, horizon_spread=0.6)
+        decided = tmp_path / "decided.h5"  # the checkpoint written when the decision was taken
+
+        def on_decision(p, _, decided=decided, values=values):
+            if p.refit_frames and not p.done:
+                save_fit(decided, {"a": 1}, list(truth), values, p)
+
+        result, planned, progress = stopped_at_the_final_stage(
+            scene, obs, values, horizon_spread=0.6, on_iteration=on_decision
+        )
         assert [s.kind for s in planned] == ["shooting", "ensemble"]
         assert progress.horizon < 50 and progress.refit_frames == 10
         assert [(s.kind, s.frames) for s in result.stages] == [("shooting", 10), ("position_shooting", 10)]
@@ -140,7 +162,14 @@ def test_auto_fits_the_starts_in_place_of_longer_segments_from_noisy_states(nois
         for n in truth:
             z = np.log(float(result.final[n]) / truth[n]) / float(report.relative_standard_error[n])
             assert abs(z) < 3, (n, values, result.final[n], report.relative_standard_error[n])
-    save_fit(tmp_path / "fit.h5", {"a": 1}, list(truth), values, progress)
-    loaded = load_fit_progress(tmp_path / "fit.h5", {"a": 1}, list(truth))
-    again = js.fit_batch(scene, [obs], list(truth), [values], js.FitSettings(horizon_spread=0.6), progress=loaded)[0]
-    assert again.stages == result.stages
+    for name in ("fit.h5", "decided.h5"):  # resumed finished, and from the decision
+        if name == "fit.h5":
+            save_fit(tmp_path / name, {"a": 1}, list(truth), values, progress)
+        loaded = load_fit_progress(tmp_path / name, {"a": 1}, list(truth))
+        assert loaded.refit_frames == 10 and loaded.done == (name == "fit.h5")
+        settings = js.FitSettings(horizon_spread=0.6)
+        again = js.fit_batch(scene, [obs], list(truth), [values], settings, progress=loaded)[0]
+        assert again.stages == result.stages
+        for n in truth:  # the same answer, to a small part of its error
+            shift = np.log(float(again.final[n]) / float(result.final[n]))
+            assert abs(shift) < 0.1 * float(report.relative_standard_error[n]), (name, n, shift)

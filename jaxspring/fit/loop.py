@@ -159,10 +159,12 @@ def fit_batch(
             if progress.horizon is None:  # measured once, at the shooting answer; a resumed fit reads it
                 progress.horizon = measure_horizon(scene, observations, names, settings.horizon_spread, progress.theta)
             stages[-1] = horizon_stage(scene, observations, names, settings, stages[-1], progress.horizon)
-            start = refit_from(scene, observations, names, settings, stages, progress, data)
+            start = refit_from(scene, observations, names, settings, stages, progress, data, before_final=True)
             if start is not None:  # segments from noisy recorded states: their starts are fitted instead
                 progress.theta, progress.refit_frames = start, stages[0].frames
                 refit_stages(stages, progress.refit_frames)
+                if on_iteration:  # a checkpoint keeps the decision
+                    on_iteration(progress, stages)
         stage = stages[progress.stage]
         if stage.kind in SEGMENT_STATES:  # Levenberg-Marquardt with the segments' states, per member
             segment_fits = free_shooting_stage(scene, observations, names, stage, settings, progress)

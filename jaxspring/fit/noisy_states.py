@@ -33,17 +33,18 @@ def refit_from(
     stages: list[Stage],
     progress: FitProgress,
     data,
+    before_final: bool = False,
 ) -> dict | None:
     """Where a plan on recorded states whose positions are noisy goes on to fit the segments'
     start positions ("position_shooting"), or None where it ends as planned.
 
     It goes on when "auto" ran multiple shooting from recorded states, and for some member
-    the plan's answer (`best_of_stages`) leaves more misfit on the objective below than the
+    (then the whole batch goes on) the plan's answer (`best_of_stages`) leaves more misfit on the objective below than the
     positions' noise variance allows: more than `MISFIT_OVER_NOISE` times it plus three
     standard deviations of its estimate, the noise being above `NOISE_FREE`. The objective
     is the final stage's, asked once the plan is done, where that stage does not start from
     the recorded states (the whole horizon); where it would be longer segments from them
-    (`over_horizon`), it is asked before that stage, at the shooting stage's answer, on the
+    (`over_horizon`), it is asked `before_final` that stage, at the shooting stage's answer, on the
     shooting stage's objective: segments from noisy states leave their starts' noise in
     their misfit whatever their length, so the longer segments would be refitted after
     they ran; the fit goes on in their place (`refit_stages`). The noise variance is
@@ -65,10 +66,9 @@ def refit_from(
     """
     if settings.strategy != "auto" or stages[0].kind != "shooting" or stages[-1].kind in SEGMENT_STATES:
         return None
-    segments_next = stages[-1].kind == "shooting"  # longer segments from the recorded states
-    if progress.done == segments_next:  # asked before such segments, after a whole horizon
+    if before_final != (stages[-1].kind == "shooting"):  # before longer segments from the states, else after
         return None
-    objective = stages[0] if segments_next else stages[-1]
+    objective = stages[0] if before_final else stages[-1]
     value = step_function(loss_function(scene, observations[0], names, objective), settings, len(observations) > 1)[2]
     theta, losses = best_of_stages(progress, names, value, data)
     for member, loss in enumerate(losses):
@@ -87,7 +87,12 @@ def refit_from(
 def refit_stages(stages: list[Stage], frames: int) -> None:
     """Add the "position_shooting" stage `refit_from` chose to the plan (in place): in place
     of a final stage of longer segments from the recorded states (decided before it), else
-    after the final stage. A resumed fit rebuilds its plan the same way."""
+    after the final stage. A resumed fit rebuilds its plan the same way (`PLAN_VERSION`).
+
+    Example:
+        >>> stages = [Stage("shooting", 10), Stage("shooting", 33)]
+        >>> refit_stages(stages, 10)  # stages: shooting 10, position_shooting 10
+    """
     if stages[-1].kind == "shooting":
         stages[-1] = Stage("position_shooting", frames)
     else:

@@ -77,9 +77,13 @@ NOISE_STEPS = 2
 linearly, so the first step does nearly all (on the 0.7 s jelly with 1% noise the second
 moves a segment's residual sum of squares by at most 0.2%)."""
 
-NOISE_CG = dict(tol=1e-8, maxiter=100)
-"""Conjugate gradients on each step's normal equations in `start_fitted_noise` (relative
-residual, most iterations; the 7 x 6 x 5 jelly's segments take 10-20)."""
+NOISE_CG_TOLERANCE = 1e-8
+"""Relative residual at which conjugate gradients stop on each step's normal equations in
+`start_fitted_noise` (the 7 x 6 x 5 jelly's segments take 10-20 iterations), or 100 times
+the central differences' accuracy (eps^(2/3)) where that is larger (float32)."""
+
+NOISE_CG_ITERATIONS = 100
+"""Most conjugate-gradient iterations per step in `start_fitted_noise`."""
 
 
 def start_fitted_noise(
@@ -93,8 +97,8 @@ def start_fitted_noise(
     The starts' noise does not enter it (the starts are fitted), and a short segment hardly
     depends on what a long one determines (kd of a bouncing jelly), so values in a wrong dip
     of a long horizon's misfit still leave about the noise here. Measured on the 7 x 6 x 5
-    jelly over 1 s with 1% noise: 0.98-1.02 times the variance drawn, at the truth and at kd
-    7x and 22x its truth (a synthetic target's first frame is exact, which the first segment
+    jelly over 1 s with 1% noise: 1.00, 1.00 and 1.04 times the variance drawn, at the truth
+    and at kd 7x and 22x its truth (a synthetic target's first frame is exact, which the first segment
     counts as noise: about 3% low for 10-frame segments). It runs on the scene's own backend
     and forms no Jacobian (`_start_fitted_squares`): 1 s on that jelly over 0.7 s, where
     the forward-mode Jacobian of its 630 start coordinates took 14 s.
@@ -129,8 +133,11 @@ def _start_fitted_squares(model, params, particles, free, data, frames, every):
         return _segment_misfit(model, params, particles, free, s_b, data, frames, every)
 
     s = jnp.zeros(free.size * 3, dtype=data["gx"].dtype)
+    eps = float(jnp.finfo(s.dtype).eps)
     # the step of a central difference: round-off and truncation balanced, relative to the positions
-    h = jnp.finfo(s.dtype).eps ** (1 / 3) * jnp.maximum(1.0, jnp.max(jnp.abs(data["gx"])))
+    size = jnp.max(jnp.abs(data["gx"]))
+    h = eps ** (1 / 3) * jnp.where(size > 0, size, 1.0)
+    tolerance = max(NOISE_CG_TOLERANCE, 100 * eps ** (2 / 3))
     for _ in range(NOISE_STEPS):
         r, pullback = jax.vjp(residual, s)
 
@@ -139,7 +146,7 @@ def _start_fitted_squares(model, params, particles, free, data, frames, every):
             u = v / jnp.where(size > 0, size, 1.0)
             return pullback(size * (residual(s + h * u) - residual(s - h * u)) / (2 * h))[0]
 
-        step, _ = jax.scipy.sparse.linalg.cg(normal, -pullback(r)[0], **NOISE_CG)
+        step, _ = jax.scipy.sparse.linalg.cg(normal, -pullback(r)[0], tol=tolerance, maxiter=NOISE_CG_ITERATIONS)
         s = s + step
     return jnp.sum(residual(s) ** 2)
 

@@ -29,8 +29,9 @@ class FitProgress:
         horizon: frames the final stage's misfit stays smooth over, once measured
             (`fit.horizon`; None before, or when the plan does not ask).
         refit_frames: segment frames of a "position_shooting" stage added after the plan's last
-            one, whose answer left more misfit than the recorded positions' noise
-            (`noisy_states.refit_from`); None when none was added.
+            one, whose answer left more misfit than the recorded positions' noise, or in place
+            of a last one of longer segments from them (`noisy_states.refit_from`,
+            `refit_stages`); None when none was added.
     """
 
     stage: int

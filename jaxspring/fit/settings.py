@@ -146,6 +146,13 @@ class Stage:
     spread: float | None = None
 
 
+PLAN_VERSION = 2
+"""The rules by which a fit's stages are planned and added (`plan_stages`, `horizon_stage`,
+`noisy_states.refit_stages`), numbered: a fit file keeps stage indices, so `--resume`
+refuses a file written under other rules. 2: "position_shooting" replaces a final stage
+of longer segments from noisy recorded states instead of following it."""
+
+
 def plan_stages(
     observations: Observations, settings: FitSettings, scene: Scene | None = None, values: int = 1
 ) -> list[Stage]:

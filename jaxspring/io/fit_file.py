@@ -13,6 +13,7 @@ from ..errors import FileFormatError, InputError
 from ..fit.identifiability import Identifiability, unique_names
 from ..fit.recording_loss import NUISANCE
 from ..fit.results import FitProgress, FitResult
+from ..fit.settings import PLAN_VERSION
 from .trajectory import atomic_path, open_hdf5
 
 FIT_FORMAT = "jaxspring.fit"
@@ -60,7 +61,9 @@ def save_fit(
             values = [np.asarray(v)[0] for v in progress.values[n]]
             history.create_dataset(n, data=np.array(values, dtype=float).reshape((len(values),) + np.shape(initial[n])))
         optimizer = group.create_group("optimizer")
-        optimizer.attrs.update(stage=progress.stage, iteration=progress.iteration, wall_s=progress.wall_s)
+        optimizer.attrs.update(
+            stage=progress.stage, iteration=progress.iteration, wall_s=progress.wall_s, plan_version=PLAN_VERSION
+        )
         if progress.last_step is not None:
             optimizer.create_dataset("last_step", data=np.asarray(progress.last_step))
         if progress.horizon is not None:
@@ -108,6 +111,12 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
         group = f["fit"]
         history = group["history"]
         optimizer = group["optimizer"]
+        if int(optimizer.attrs.get("plan_version", 1)) != PLAN_VERSION:
+            raise InputError(
+                "--resume",
+                f"{path} was written by a jaxspring that planned a fit's stages otherwise",
+                "drop --resume to fit again from the start",
+            )
         loss = [np.array([v]) for v in history["loss"][()]]
         values = {n: [np.asarray(v)[None] for v in history[n][()]] for n in names}
         leaves = None
