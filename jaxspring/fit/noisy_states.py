@@ -39,13 +39,14 @@ def refit_from(
     start positions ("position_shooting"), or None where it ends as planned.
 
     It goes on when "auto" ran multiple shooting from recorded states, and for some member
-    (then the whole batch goes on) the plan's answer (`best_of_stages`) leaves more misfit on the objective below than the
-    positions' noise variance allows: more than `MISFIT_OVER_NOISE` times it plus three
-    standard deviations of its estimate, the noise being above `NOISE_FREE`. The objective
-    is the final stage's, asked once the plan is done, where that stage does not start from
-    the recorded states (the whole horizon); where it would be longer segments from them
-    (`over_horizon`), it is asked `before_final` that stage, at the shooting stage's answer, on the
-    shooting stage's objective: segments from noisy states leave their starts' noise in
+    (then the whole batch goes on) the plan's answer (`best_of_stages`) leaves more misfit
+    on the objective below than the positions' noise variance allows: more than
+    `MISFIT_OVER_NOISE` times it plus three standard deviations of its estimate, the noise
+    being above `NOISE_FREE`. The objective is the final stage's, asked once the plan is
+    done, where that stage does not start from the recorded states (the whole horizon);
+    where it would be longer segments from them (`over_horizon`), it is asked
+    `before_final` that stage, at the shooting stage's answer, on the shooting stage's
+    objective: segments from noisy states leave their starts' noise in
     their misfit whatever their length, so the longer segments would be refitted after
     they ran; the fit goes on in their place (`refit_stages`). The noise variance is
     measured at the answer by fitting the start positions of a few segments

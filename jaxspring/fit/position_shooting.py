@@ -98,8 +98,9 @@ def start_fitted_noise(
     depends on what a long one determines (kd of a bouncing jelly), so values in a wrong dip
     of a long horizon's misfit still leave about the noise here. Measured on the 7 x 6 x 5
     jelly over 1 s with 1% noise: 1.00, 1.00 and 1.04 times the variance drawn, at the truth
-    and at kd 7x and 22x its truth (a synthetic target's first frame is exact, which the first segment
-    counts as noise: about 3% low for 10-frame segments). It runs on the scene's own backend
+    and at kd 7x and 22x its truth (a synthetic target's first frame is exact, which the
+    first segment counts as noise: about 3% low for 10-frame segments). It runs on the
+    scene's own backend
     and forms no Jacobian (`_start_fitted_squares`): 1 s on that jelly over 0.7 s, where
     the forward-mode Jacobian of its 630 start coordinates took 14 s.
 
@@ -141,10 +142,10 @@ def _start_fitted_squares(model, params, particles, free, data, frames, every):
     for _ in range(NOISE_STEPS):
         r, pullback = jax.vjp(residual, s)
 
-        def normal(v, s=s, pullback=pullback):
-            size = jnp.linalg.norm(v)
-            u = v / jnp.where(size > 0, size, 1.0)
-            return pullback(size * (residual(s + h * u) - residual(s - h * u)) / (2 * h))[0]
+        def normal(v, s=s, pullback=pullback):  # J^T J v
+            length = jnp.linalg.norm(v)
+            u = v / jnp.where(length > 0, length, 1.0)
+            return pullback(length * (residual(s + h * u) - residual(s - h * u)) / (2 * h))[0]
 
         step, _ = jax.scipy.sparse.linalg.cg(normal, -pullback(r)[0], tol=tolerance, maxiter=NOISE_CG_ITERATIONS)
         s = s + step
