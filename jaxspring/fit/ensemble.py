@@ -42,8 +42,9 @@ def ensemble_step_function(scene: Scene, observations: Observations, names, stag
     floor = float(np.sqrt(jnp.finfo(dtype).eps))
     start_spread = settings.ensemble_spread if stage.spread is None else stage.spread
 
-    def no_narrower_than_floor(spread):
-        return spread * jnp.maximum(1.0, floor / jnp.linalg.norm(spread, 2))
+    def no_narrower_than_floor(spread):  # along every axis: a narrower one measures round-off
+        left, sizes, right = jnp.linalg.svd(spread)
+        return (left * jnp.maximum(sizes, floor)) @ right
 
     misfit = misfit_function(scene, observations, names, stage.frames)
 

@@ -235,17 +235,22 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     )
     final_stage = progress.stage == len(stages) - 1
     floor = round_off_loss(scene, reference)
+    previous = progress.last_step  # resumed: the checkpoint's, at most as small as the last step
     while progress.iteration < settings.iterations and not _converged(
         progress, settings, final_stage, opt_state, floor
     ):
         values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
         theta, opt_state, value = step(progress.theta, opt_state, data)
-        progress.last_step = np.max(
+        moved = np.max(
             np.stack(
                 [np.abs(np.asarray(theta[n] - progress.theta[n])).reshape(members, -1).max(axis=1) for n in names]
             ),
             axis=0,
         )
+        # over two iterations: one line search that stalls (in float32 L-BFGS's does, with
+        # a badly scaled curvature) is followed by a long step, not by convergence
+        progress.last_step = None if previous is None else np.maximum(moved, previous)
+        previous = moved
         progress.theta = theta
         progress.loss.append(np.asarray(value))
         for n in names:
@@ -261,12 +266,14 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
 
 
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state, floor: float) -> bool:
-    """Whether every member has converged in the current stage (see FitSettings), or fits
-    its target to round-off (`floor`, the loss of positions that differ by round-off)."""
-    if progress.loss and progress.stage_of_iteration[-1] == progress.stage and np.all(progress.loss[-1] <= floor):
-        return True
-    if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage says so itself
-        return bool(np.all(np.asarray(opt_state["done"]) > 0))
+    """Whether every member has converged in the current stage (see FitSettings). An ensemble
+    stage says so itself, or stops when it fits its target to round-off (`floor`, the loss of
+    positions that differ by round-off): without noise its cloud would otherwise shrink
+    towards standard errors of zero for all its iterations. Gradient stages stop on their
+    steps and loss alone, which reach further than that floor (in float32 by far)."""
+    if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage
+        current = progress.loss and progress.stage_of_iteration[-1] == progress.stage
+        return bool(np.all(np.asarray(opt_state["done"]) > 0) or (current and np.all(progress.loss[-1] <= floor)))
     if progress.last_step is not None:
         limit = settings.step_tolerance if final_stage else settings.warmup_step_tolerance
         if np.all(progress.last_step <= limit):

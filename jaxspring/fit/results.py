@@ -23,7 +23,7 @@ class FitProgress:
         loss: loss before each completed iteration, list of (B,) arrays.
         values: parameter values before each completed iteration, name -> list of (B, ...) arrays.
         stage_of_iteration: stage index of each completed iteration.
-        last_step: largest log-parameter change of the last iteration, per member (B,).
+        last_step: largest log-parameter change of the last two iterations, per member (B,).
         done: whether the fit finished.
         wall_s: time spent so far [s].
         horizon: frames the final stage's misfit stays smooth over, once measured
