@@ -12,7 +12,8 @@ uncertainty (see `FitSettings.ensemble`).
 
 Modules: `settings` (FitSettings, the plan of stages), `objective` (the misfit),
 `horizon` (how long the misfit stays smooth), `loop` (fit, fit_batch), `ensemble` (the
-ensemble stage), `identifiability` (Gauss-Newton polish, standard errors), `results`,
+ensemble stage), `least_squares` (Levenberg-Marquardt: the shooting stage's finish),
+`identifiability` (Gauss-Newton polish, standard errors), `results`,
 `observations`, `shooting` and `block_lm` (free multiple shooting).
 """
 

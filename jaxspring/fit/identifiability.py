@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..sim.scene import Scene
+from .least_squares import levenberg_marquardt
 from .objective import residual_function, segment_misfit_function, target_data
 from .observations import Observations
 
@@ -77,38 +78,18 @@ def gauss_newton_polish(scene, observations, names, values, settings, max_parame
     flat, unravel, residuals = residual_function(scene, observations, names, values, segment)
     if flat.shape[0] > max_parameters:
         return []
-    residuals = jax.jit(residuals)
-    jacobian = jax.jit(jax.jacfwd(residuals))
-    flat = np.asarray(flat)
-    r = np.asarray(residuals(flat))
-    cost = float(r @ r)
-    steps = _PolishSteps()
-    damping = 1e-3
+    solution = levenberg_marquardt(
+        jax.jit(residuals),
+        jax.jit(jax.jacfwd(residuals)),
+        np.asarray(flat),
+        settings.polish_iterations,
+        settings.step_tolerance,
+        settings.tolerance,
+    )
     to_values = lambda v: {n: np.asarray(jnp.exp(x)) for n, x in unravel(jnp.asarray(v)).items()}  # noqa: E731
-    for _ in range(settings.polish_iterations):
-        jac = np.asarray(jacobian(flat))
-        gradient, normal = jac.T @ r, jac.T @ jac
-        scale = np.maximum(np.diag(normal), 1e-300)
-        accepted = False
-        for _ in range(12):
-            step = -np.linalg.pinv(normal + damping * np.diag(scale), rcond=1e-14) @ gradient
-            candidate = flat + step
-            r_new = np.asarray(residuals(candidate))
-            cost_new = float(r_new @ r_new)
-            if np.isfinite(cost_new) and cost_new < cost:
-                accepted = True
-                break
-            damping *= 10.0
-        if not accepted:
-            break
-        steps.append((cost / r.size, to_values(flat)))
-        improvement = (cost - cost_new) / cost
-        flat, r, cost = candidate, r_new, cost_new
-        damping = max(damping / 10.0, 1e-12)
-        if np.max(np.abs(step)) <= settings.step_tolerance or improvement <= settings.tolerance**2:
-            break
-    steps.final = to_values(flat)
-    steps.final_loss = cost / r.size
+    steps = _PolishSteps((loss, to_values(v)) for loss, v in solution.history)
+    steps.final = to_values(solution.flat)
+    steps.final_loss = solution.loss
     return steps
 
 
