@@ -1,6 +1,7 @@
 """Levenberg-Marquardt (`fit.least_squares`) and the shooting stage's finish with it."""
 
 import dataclasses
+import importlib
 
 import jax
 import jax.numpy as jnp
@@ -69,3 +70,54 @@ def test_the_shooting_finish_leaves_noisy_segments_alone(scenes):
     [left], _ = finish_segments(scene, [noisy], names, 5, theta, settings)
     assert left.history == [] and left.loss > 1e6 * round_off_loss(scene, noisy)
     np.testing.assert_array_equal(left.flat, ravel_pytree({n: theta[n][0] for n in names})[0])
+
+
+def test_levenberg_marquardt_on_the_segments_finds_the_truth(scenes):
+    """Differenced J^T J with the exact gradient, from 20% off on exact data: the truth."""
+    scene = scenes["chain"]
+    obs = js.synthetic_observations(scene, CHAIN_TRUTH, steps=200, save_every=10)
+    names = ("ks", "kd", "cd")
+    start, unravel = ravel_pytree({n: jnp.log(jnp.asarray(1.2 * CHAIN_TRUTH[n])) for n in names})
+    residual, jacobian, gradient = segment_least_squares(scene, obs, names, 5, unravel, 3)
+    data = target_data(obs)
+    solution = levenberg_marquardt(
+        lambda v: residual(v, data),
+        lambda v: jacobian(v, data),
+        np.asarray(start),
+        30,
+        1e-12,
+        1e-12,
+        gradient=lambda v: gradient(v, data),
+    )
+    for n, value in unravel(jnp.asarray(solution.flat)).items():
+        assert abs(np.exp(float(value)) / CHAIN_TRUTH[n] - 1) < 1e-9, n
+
+
+def test_a_batch_finishes_each_member_on_its_own(scenes, monkeypatch):
+    """Two targets in one fit_batch, exact and noisy, both let into the finish: each ends its
+    shooting stage where its own segments' gradient vanishes (the exact one at the truth to
+    1e-11, where L-BFGS alone stops at 2e-10), with histories of equal lengths, finite
+    (the member that took fewer steps is padded with its answer)."""
+    monkeypatch.setattr(importlib.import_module("jaxspring.fit.least_squares"), "FINISH_WINDOW", (0.0, np.inf))
+    scene = scenes["chain"]
+    names = ("ks", "kd", "cd")
+    exact = js.synthetic_observations(scene, CHAIN_TRUTH, steps=200, save_every=10)
+    noisy = js.synthetic_observations(scene, CHAIN_TRUTH, steps=200, save_every=10, noise_relative=0.01)
+    start = {n: 1.5 * v for n, v in CHAIN_TRUTH.items()}
+    results = js.fit_batch(
+        scene, [exact, noisy], names, [start, start], js.FitSettings(strategy="shooting", segment_frames=5)
+    )
+    _, unravel = ravel_pytree({n: jnp.zeros(()) for n in names})
+    for result, obs in zip(results, (exact, noisy), strict=True):
+        assert result.stages[0].kind == "shooting"
+        end = int(np.argmax(result.stage_of_iteration == 1))  # the next stage's first row: the finish's answer
+        assert end > 0 and len(result.loss_history) == result.stage_of_iteration.size + 1
+        assert np.all(np.isfinite(result.loss_history))
+        flat = np.array([np.log(result.value_history[n][end]) for n in sorted(names)])  # ravel order
+        _, _, gradient = segment_least_squares(scene, obs, names, 5, unravel, 3)
+        slope = np.asarray(gradient(jnp.asarray(flat), target_data(obs)))
+        initial = np.asarray(gradient(jnp.log(jnp.array([start[n] for n in sorted(names)])), target_data(obs)))
+        assert np.linalg.norm(slope) < 1e-7 * np.linalg.norm(initial)
+        if obs is exact:
+            for n, value in CHAIN_TRUTH.items():
+                assert abs(result.value_history[n][end] / value - 1) < 1e-11, n

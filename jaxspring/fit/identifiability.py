@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..sim.scene import Scene
-from .least_squares import levenberg_marquardt
+from .least_squares import MAX_VALUES, levenberg_marquardt
 from .objective import residual_function, segment_misfit_function, target_data
 from .observations import Observations
 
@@ -67,7 +67,7 @@ class _PolishSteps(list):
     final_loss: float
 
 
-def gauss_newton_polish(scene, observations, names, values, settings, max_parameters: int = 64, segment=None):
+def gauss_newton_polish(scene, observations, names, values, settings, max_parameters: int = MAX_VALUES, segment=None):
     """Levenberg-Marquardt on the full-horizon residuals (with `segment`, on segments of that
     many frames from recorded states), from the first-order optimiser's answer.
 

@@ -5,10 +5,10 @@ values; near the answer their differences drown in the round-off of the simulate
 (in float32, along the jelly's valley of stiffness against damping, L-BFGS stalls with its
 damping 13% off, at a loss of 1e-10 m^2 that looks converged). Gauss-Newton sees the residuals
 and their Jacobian, whose round-off enters a step linearly and averages out: from the same
-point three steps reach the truth to 1e-5. So a stage whose objective is a least-squares
-misfit over short segments (multiple shooting from recorded states, where the misfit stays
-smooth) and whose answer is within round-off's reach (`FINISH_BELOW`) ends with
-Levenberg-Marquardt steps (`finish_segments`).
+point three steps take the damping to 1.4e-5 of the truth. So a stage whose objective is a
+least-squares misfit over short segments (multiple shooting from recorded states, where the
+misfit stays smooth) and whose answer is within round-off's reach but not yet at round-off
+(`FINISH_WINDOW`) ends with Levenberg-Marquardt steps (`finish_segments`).
 """
 
 from __future__ import annotations
@@ -27,17 +27,18 @@ MAX_VALUES = 64
 """Levenberg-Marquardt takes a column of the Jacobian per fitted value: with more values than
 this a stage ends on its first-order optimiser alone."""
 
-FINISH_BELOW = 4.0
-"""A shooting stage's answer is finished when its misfit is below this many round-off losses
-(`horizon.round_off_loss`: RMS residual within twice 64 units of round-off of the positions'
-size): exact data, where round-off, not the data, limits a line search. Measured on the
-0.7 s jelly: float32's L-BFGS stalls at 0.04 of it (kd 13% off); float64's ends at 2e-5 of
-it, converged (one step, 0.7 s, moves nothing). With 1% noise the misfit is the noise's,
-1e5 of it in float32 and far more in float64, and the optimiser's answer is as good as the
-noisy segments allow: finishing those exactly (the segments start from noisy recorded
-states, so their least-squares answer is itself biased) made the whole-horizon stage after
-it end farther off (over 10 noise seeds, float64: kd 8.9% off in the median against 5.4%,
-2 s slower)."""
+FINISH_WINDOW = (1e-3, 4.0)
+"""A shooting stage's answer is finished when its misfit lies in this range of round-off
+losses (`horizon.round_off_loss`, positions 64 units of round-off of their size apart): RMS
+residuals between 2 and 128 units of round-off. That is exact data, where round-off, not
+the data, limits a line search; below it the answer is as exact as the arithmetic. Measured
+on the 0.7 s jelly: float32's L-BFGS stalls at 0.04 (kd 13% off); float64's converges on
+its own to 2e-5 (finishing it anyway took a step that moved nothing, in 0.7 s). With 1%
+noise the misfit is the noise's, 1e5 in float32 and far more in float64, and the
+optimiser's answer is as good as the noisy segments allow: finishing those exactly (they
+start from noisy recorded states, so their least-squares answer is itself biased) made the
+whole-horizon stage after it end farther off (over 10 noise seeds, float64: kd 8.9% off in
+the median against 5.4%, 2 s slower)."""
 
 
 @dataclasses.dataclass
@@ -108,23 +109,29 @@ def finish_segments(scene, observations: list, names, segment: int, theta: dict,
     (the "shooting" stage's objective), from `theta` (name -> log values, (B, ...)), for each
     member of the batch (`observations` one target shared, or one per member): at most
     `settings.polish_iterations` steps, ending as `levenberg_marquardt` does with the
-    settings' `step_tolerance` and `tolerance`. A member whose misfit is not below
-    `FINISH_BELOW` round-off losses is left where it is (a Solution without steps).
+    settings' `step_tolerance` and `tolerance`. A member whose misfit is outside
+    `FINISH_WINDOW` is left where it is (a Solution without steps).
 
     Returns (a Solution per member, unravel: its flat log values -> name -> log value), or
     None when more than `MAX_VALUES` values are fitted.
+
+    Example:
+        >>> solutions, unravel = finish_segments(scene, [obs], ["ks", "kd"], 10, theta, js.FitSettings())
+        >>> unravel(solutions[0].flat)  # name -> log value, finished where in reach
     """
     flat, unravel = ravel_pytree({n: jnp.asarray(theta[n][0]) for n in names})
     if flat.shape[0] > MAX_VALUES:
         return None
     residual, jacobian, gradient = segment_least_squares(scene, observations[0], names, segment, unravel, flat.shape[0])
+    low, high = FINISH_WINDOW
     solutions = []
-    for m in range(np.asarray(theta[names[0]]).shape[0]):
-        data = target_data(observations[m if len(observations) > 1 else 0])
-        start, _ = ravel_pytree({n: jnp.asarray(theta[n][m]) for n in names})
-        start = np.asarray(start)
+    for m in range(np.shape(theta[names[0]])[0]):
+        target = observations[m if len(observations) > 1 else 0]
+        data = target_data(target)
+        start = np.asarray(ravel_pytree({n: jnp.asarray(theta[n][m]) for n in names})[0])
         misfit = float(np.mean(np.asarray(residual(start, data), dtype=float) ** 2))
-        if not misfit <= FINISH_BELOW * round_off_loss(scene, observations[m if len(observations) > 1 else 0]):
+        floor = round_off_loss(scene, target)
+        if not low * floor <= misfit <= high * floor:
             solutions.append(Solution([], start, misfit))
             continue
         solutions.append(
@@ -148,12 +155,18 @@ def segment_least_squares(scene, observations, names, segment: int, unravel, siz
     log value), and the exact J^T r (reverse mode).
 
     The Jacobian is taken by central differences, with steps of eps^(1/3) in log space
-    (`difference_step`), all 2 P points in one batched rollout: the stage's own simulation
-    serves (the native kernels are reverse-mode only), where a forward-mode Jacobian would
-    compile the pure-JAX step for seconds (measured on the jelly: 0.14 s against 2.9 s).
-    In float64 it is good to about 1e-6 of a column's size; in float32 a weakly determined
-    column (the jelly's damping) can be tens of percent off: with the exact J^T r that
-    slows the steps, never the answer.
+    (`difference_step`), the 2 P points one after the other (`lax.map`: one rollout's
+    memory, as the stage's own): the stage's own simulation serves (the native kernels are
+    reverse-mode only), where a forward-mode Jacobian would compile the pure-JAX step for
+    seconds (measured on the jelly: 0.14 s against 2.9 s). In float64 it is good to a few
+    1e-6 of a column's size (the chain's); in float32 a weakly determined column (the
+    jelly's damping) can be tens of percent off. With the exact J^T r that changes the
+    steps, not where they converge (where J^T r vanishes).
+
+    Example:
+        >>> flat, unravel = ravel_pytree({"ks": jnp.log(250.0), "kd": jnp.log(0.05)})
+        >>> residual, jacobian, gradient = segment_least_squares(scene, obs, ["ks", "kd"], 10, unravel, 2)
+        >>> jacobian(flat, target_data(obs)).shape  # (residuals, 2)
     """
     misfit = segment_misfit_function(scene, observations, names, segment)
     residual_of = lambda vector, data: misfit(unravel(vector), data).reshape(-1)  # noqa: E731
@@ -163,7 +176,7 @@ def segment_least_squares(scene, observations, names, segment: int, unravel, siz
     @jax.jit
     def jacobian(vector, data):
         points = vector + offsets.astype(vector.dtype)
-        r = jax.vmap(residual_of, in_axes=(0, None))(points, data)
+        r = jax.lax.map(lambda point: residual_of(point, data), points)
         return ((r[:size] - r[size:]) / jnp.diagonal(points[:size] - points[size:])[:, None]).T  # steps as rounded
 
     gradient = jax.jit(jax.grad(lambda vector, data: 0.5 * jnp.sum(residual_of(vector, data) ** 2)))
@@ -172,5 +185,9 @@ def segment_least_squares(scene, observations, names, segment: int, unravel, siz
 
 def difference_step(dtype) -> float:
     """Central differences' step for a smooth function in `dtype`: eps^(1/3) balances the
-    truncation error (h^2) against round-off (eps / h)."""
+    truncation error (h^2) against round-off (eps / h).
+
+    Example:
+        >>> difference_step(jnp.float64)  # 6.06e-06
+    """
     return float(jnp.finfo(dtype).eps) ** (1 / 3)

@@ -54,7 +54,9 @@ class FitSettings:
         polish: finish with Levenberg-Marquardt (Gauss-Newton) steps on the whole horizon
             (at most `polish_iterations`; up to 64 parameter values). Scale-invariant, it
             finishes smooth, badly scaled valleys quickly; off by default because on
-            contact-rough losses (the noisy jelly) it does not help.
+            contact-rough losses (the noisy jelly) it does not help. (A "shooting" stage
+            on exact data is finished so whatever this says, with at most
+            `polish_iterations` steps and `step_tolerance`: `fit.least_squares`.)
         ensemble: how the full-horizon stage runs. "gradient": the optimiser on the loss.
             "ensemble": Gauss-Newton on the loss smoothed over a Gaussian cloud of parameter
             values (`ensemble_members` rollouts a step, no gradients), the cloud shrinking to
@@ -146,11 +148,13 @@ class Stage:
     spread: float | None = None
 
 
-PLAN_VERSION = 2
-"""The rules by which a fit's stages are planned and added (`plan_stages`, `horizon_stage`,
-`noisy_states.refit_stages`), numbered: a fit file keeps stage indices, so `--resume`
-refuses a file written under other rules. 2: "position_shooting" replaces a final stage
-of longer segments from noisy recorded states instead of following it."""
+PLAN_VERSION = 3
+"""The rules by which a fit's stages are planned, added and ended (`plan_stages`,
+`horizon_stage`, `noisy_states.refit_stages`), numbered: a fit file keeps stage indices, so
+`--resume` refuses a file written under other rules. 2: "position_shooting" replaces a final
+stage of longer segments from noisy recorded states instead of following it. 3: a
+"shooting" stage on exact data ends with Levenberg-Marquardt steps
+(`least_squares.finish_segments`)."""
 
 
 def plan_stages(
