@@ -94,18 +94,23 @@ def test_levenberg_marquardt_on_the_segments_finds_the_truth(scenes):
 
 
 def test_a_batch_finishes_each_member_on_its_own(scenes, monkeypatch):
-    """Two targets in one fit_batch, exact and noisy, both let into the finish: each ends its
-    shooting stage where its own segments' gradient vanishes (the exact one at the truth to
-    1e-11, where L-BFGS alone stops at 2e-10), with histories of equal lengths, finite
-    (the member that took fewer steps is padded with its answer)."""
-    monkeypatch.setattr(importlib.import_module("jaxspring.fit.least_squares"), "FINISH_WINDOW", (0.0, np.inf))
+    """Two targets in one fit_batch, exact and noisy, both let into the finish (as if stalled
+    within round-off's reach) after three L-BFGS iterations: each ends its shooting stage
+    where its own segments' gradient vanishes (the exact one at the truth), with histories
+    of equal lengths, finite (the member that took fewer steps is padded with its answer)."""
+    monkeypatch.setattr(importlib.import_module("jaxspring.fit.least_squares"), "FINISH_BELOW", np.inf)
+    monkeypatch.setattr(importlib.import_module("jaxspring.fit.loop"), "_stalled", lambda p: np.ones(2, bool))
     scene = scenes["chain"]
     names = ("ks", "kd", "cd")
     exact = js.synthetic_observations(scene, CHAIN_TRUTH, steps=200, save_every=10)
     noisy = js.synthetic_observations(scene, CHAIN_TRUTH, steps=200, save_every=10, noise_relative=0.01)
     start = {n: 1.5 * v for n, v in CHAIN_TRUTH.items()}
     results = js.fit_batch(
-        scene, [exact, noisy], names, [start, start], js.FitSettings(strategy="shooting", segment_frames=5)
+        scene,
+        [exact, noisy],
+        names,
+        [start, start],
+        js.FitSettings(strategy="shooting", segment_frames=5, iterations=3),
     )
     _, unravel = ravel_pytree({n: jnp.zeros(()) for n in names})
     for result, obs in zip(results, (exact, noisy), strict=True):
@@ -117,7 +122,7 @@ def test_a_batch_finishes_each_member_on_its_own(scenes, monkeypatch):
         _, _, gradient = segment_least_squares(scene, obs, names, 5, unravel, 3)
         slope = np.asarray(gradient(jnp.asarray(flat), target_data(obs)))
         initial = np.asarray(gradient(jnp.log(jnp.array([start[n] for n in sorted(names)])), target_data(obs)))
-        assert np.linalg.norm(slope) < 1e-7 * np.linalg.norm(initial)
+        assert np.linalg.norm(slope) < 1e-4 * np.linalg.norm(initial)
         if obs is exact:
             for n, value in CHAIN_TRUTH.items():
-                assert abs(result.value_history[n][end] / value - 1) < 1e-11, n
+                assert abs(result.value_history[n][end] / value - 1) < 1e-8, n

@@ -8,14 +8,15 @@ import numpy as np
 from .results import FitProgress
 
 
-def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> bool:
+def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> tuple[bool, np.ndarray | None]:
     """End a stage on the best point it has seen on its own loss (per member): the point it
     stopped at, or an earlier one with a lower loss (Adam's and the ensemble's losses are not
     monotone). Taken from the history, so a resumed fit chooses as an uninterrupted one.
-    Returns whether any member went back."""
+    Returns whether any member went back, and the stage's loss where each member ends (None
+    for a stage without iterations or with a fitted start)."""
     done = [i for i, s in enumerate(progress.stage_of_iteration) if s == progress.stage]
     if not done or set(progress.theta) != set(names):  # a fitted start has no history: polished after
-        return False
+        return False, None
     _, _, end = step(progress.theta, opt_state, data)  # the loss where the stage stopped
     losses = np.stack([np.asarray(progress.loss[i], dtype=float) for i in done])
     losses = np.where(np.isfinite(losses), losses, np.inf)
@@ -24,7 +25,7 @@ def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> b
     end = np.where(np.isfinite(np.asarray(end, dtype=float)), np.asarray(end, dtype=float), np.inf)
     back = losses[best, members] < end
     if not back.any():
-        return False
+        return False, end
     theta = {}
     for n, value in progress.theta.items():
         value = np.array(value)
@@ -33,7 +34,7 @@ def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> b
                 value[m] = np.log(progress.values[n][done[best[m]]][m])
         theta[n] = jnp.asarray(value)
     progress.theta = theta
-    return True
+    return True, np.where(back, losses[best, members], end)
 
 
 def best_of_stages(progress: FitProgress, names, value, data):

@@ -7,8 +7,8 @@ damping 13% off, at a loss of 1e-10 m^2 that looks converged). Gauss-Newton sees
 and their Jacobian, whose round-off enters a step linearly and averages out: from the same
 point three steps take the damping to 1.4e-5 of the truth. So a stage whose objective is a
 least-squares misfit over short segments (multiple shooting from recorded states, where the
-misfit stays smooth) and whose answer is within round-off's reach but not yet at round-off
-(`FINISH_WINDOW`) ends with Levenberg-Marquardt steps (`finish_segments`).
+misfit stays smooth) and whose optimiser stalled within round-off's reach (`FINISH_BELOW`)
+ends with Levenberg-Marquardt steps (`finish_segments`).
 """
 
 from __future__ import annotations
@@ -27,18 +27,19 @@ MAX_VALUES = 64
 """Levenberg-Marquardt takes a column of the Jacobian per fitted value: with more values than
 this a stage ends on its first-order optimiser alone."""
 
-FINISH_WINDOW = (1e-3, 4.0)
-"""A shooting stage's answer is finished when its misfit lies in this range of round-off
-losses (`horizon.round_off_loss`, positions 64 units of round-off of their size apart): RMS
-residuals between 2 and 128 units of round-off. That is exact data, where round-off, not
-the data, limits a line search; below it the answer is as exact as the arithmetic. Measured
-on the 0.7 s jelly: float32's L-BFGS stalls at 0.04 (kd 13% off); float64's converges on
-its own to 2e-5 (finishing it anyway took a step that moved nothing, in 0.7 s). With 1%
-noise the misfit is the noise's, 1e5 in float32 and far more in float64, and the
-optimiser's answer is as good as the noisy segments allow: finishing those exactly (they
-start from noisy recorded states, so their least-squares answer is itself biased) made the
-whole-horizon stage after it end farther off (over 10 noise seeds, float64: kd 8.9% off in
-the median against 5.4%, 2 s slower)."""
+FINISH_BELOW = 4.0
+"""A shooting stage whose optimiser stalled (its line search found no lower loss twice: the
+values did not move) is finished when its misfit is below this many round-off losses
+(`horizon.round_off_loss`, positions 64 units of round-off of their size apart; RMS
+residuals up to 128 units): exact data, where round-off, not the data, limits a line search.
+Measured on the 0.7 s jelly: float32's L-BFGS stalls at 0.04 of it with kd 13% off;
+float64's converges on its own (its last steps shrink, not vanish; finishing it anyway
+gains 1e-11 and costs 1-2 s, as the next stage's line search then starts at round-off).
+With 1% noise the misfit is the noise's, 1e5 of it in float32 and far more in float64,
+and the optimiser's answer is as good as the noisy segments allow: finishing those exactly
+(they start from noisy recorded states, so their least-squares answer is itself biased)
+made the whole-horizon stage after it end farther off (over 10 noise seeds, float64: kd
+8.9% off in the median against 5.4%, 2 s slower)."""
 
 
 @dataclasses.dataclass
@@ -61,10 +62,12 @@ def levenberg_marquardt(
     With `gradient(flat)` -> J^T r taken exactly (reverse mode), `jacobian` may be an
     approximation: it shapes the steps (J^T J), not where they end (where J^T r vanishes).
 
-    Ends after `iterations` accepted steps, when no value moves by more than `step_tolerance`,
+    Ends after `iterations` accepted steps, when a step would move no value by more than
+    `step_tolerance` (not taken: converged; an answer already at round-off is left as it is,
+    where a step of round-off would only make the next optimiser's line search work longer),
     when a step lowers the cost by less than `tolerance`^2 of it, or when twelve dampings,
-    each ten times the last, find no lower cost. Normal equations are solved in float64
-    whatever the residuals' precision.
+    each ten times the last, find no lower cost.
+    Normal equations are solved in float64 whatever the residuals' precision.
 
     Example:
         >>> levenberg_marquardt(lambda p: p - 1.0, lambda p: np.eye(2), np.zeros(2), 10, 1e-9, 1e-9).flat
@@ -86,6 +89,8 @@ def levenberg_marquardt(
         accepted = False
         for _ in range(12):
             step = -np.linalg.pinv(normal + damping * np.diag(scale), rcond=1e-14) @ slope
+            if np.max(np.abs(step)) <= step_tolerance:  # converged: not taken
+                break
             candidate = (flat + step).astype(dtype)
             r_new = np.asarray(residual(candidate), dtype=float)
             cost_new = float(r_new @ r_new)
@@ -99,18 +104,20 @@ def levenberg_marquardt(
         improvement = (cost - cost_new) / cost
         flat, r, cost = candidate, r_new, cost_new
         damping = max(damping / 10.0, 1e-12)
-        if np.max(np.abs(step)) <= step_tolerance or improvement <= tolerance**2:
+        if improvement <= tolerance**2:
             break
     return Solution(history, flat, cost / max(r.size, 1))
 
 
-def finish_segments(scene, observations: list, names, segment: int, theta: dict, settings):
+def finish_segments(scene, observations: list, names, segment: int, theta: dict, settings, misfits=None, stalled=None):
     """Levenberg-Marquardt on the misfit of `segment`-frame segments from recorded states
     (the "shooting" stage's objective), from `theta` (name -> log values, (B, ...)), for each
     member of the batch (`observations` one target shared, or one per member): at most
     `settings.polish_iterations` steps, ending as `levenberg_marquardt` does with the
-    settings' `step_tolerance` and `tolerance`. A member whose misfit is outside
-    `FINISH_WINDOW` is left where it is (a Solution without steps).
+    settings' `step_tolerance` and `tolerance`. A member is left where it is (a Solution
+    without steps) unless its optimiser stalled (`stalled`, (B,) bools; None: every member)
+    with its misfit (`misfits`, (B,): the stage's loss there, so nothing is compiled for a
+    member left alone; None: evaluated here) below `FINISH_BELOW` round-off losses.
 
     Returns (a Solution per member, unravel: its flat log values -> name -> log value), or
     None when more than `MAX_VALUES` values are fitted.
@@ -123,15 +130,19 @@ def finish_segments(scene, observations: list, names, segment: int, theta: dict,
     if flat.shape[0] > MAX_VALUES:
         return None
     residual, jacobian, gradient = segment_least_squares(scene, observations[0], names, segment, unravel, flat.shape[0])
-    low, high = FINISH_WINDOW
     solutions = []
     for m in range(np.shape(theta[names[0]])[0]):
         target = observations[m if len(observations) > 1 else 0]
         data = target_data(target)
         start = np.asarray(ravel_pytree({n: jnp.asarray(theta[n][m]) for n in names})[0])
-        misfit = float(np.mean(np.asarray(residual(start, data), dtype=float) ** 2))
-        floor = round_off_loss(scene, target)
-        if not low * floor <= misfit <= high * floor:
+        if stalled is not None and not stalled[m]:
+            solutions.append(Solution([], start, np.nan if misfits is None else float(misfits[m])))
+            continue
+        if misfits is None:
+            misfit = float(np.mean(np.asarray(residual(start, data), dtype=float) ** 2))
+        else:
+            misfit = float(np.asarray(misfits, dtype=float)[m])
+        if not misfit <= FINISH_BELOW * round_off_loss(scene, target):
             solutions.append(Solution([], start, misfit))
             continue
         solutions.append(

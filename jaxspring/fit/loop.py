@@ -264,18 +264,26 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)
-    if keep_best_of_stage(progress, names, step, opt_state, data):
+    went_back, loss = keep_best_of_stage(progress, names, step, opt_state, data)
+    if went_back:
         progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
     if stage.kind == "shooting" and not isinstance(reference, RecordingTarget):
-        _finish_segments(run, stage, progress)
+        _finish_segments(run, stage, progress, loss)
 
 
-def _finish_segments(run: _Run, stage: Stage, progress: FitProgress):
+def _finish_segments(run: _Run, stage: Stage, progress: FitProgress, loss):
     """End a shooting stage (segments from recorded states) with Levenberg-Marquardt on its
     residuals (`fit.least_squares`), which resolves what the optimiser's line search cannot
     (in float32, the jelly's damping against its stiffness). Its steps join the stage's
-    history as iterations; a member that stops early repeats its answer."""
-    found = finish_segments(run.scene, run.observations, run.names, stage.frames, progress.theta, run.settings)
+    history as iterations; a member that stops early repeats its answer. `loss`: the stage's
+    loss where each member ended it (None: measured here). Only members whose optimiser
+    stalled (`_stalled`) are finished."""
+    stalled = _stalled(progress)
+    if stalled is None or not stalled.any():
+        return
+    found = finish_segments(
+        run.scene, run.observations, run.names, stage.frames, progress.theta, run.settings, loss, stalled
+    )
     if found is None:
         return
     solutions, unravel = found
@@ -293,6 +301,12 @@ def _finish_segments(run: _Run, stage: Stage, progress: FitProgress):
     for n in run.names:
         theta[n] = jnp.stack([a[n] for a in answers]).astype(progress.theta[n].dtype)
     progress.theta = shard_batch(theta) if run.members_sharded else theta
+
+
+def _stalled(progress: FitProgress) -> np.ndarray | None:
+    """Per member, whether the stage's last two iterations left every value where it was: the
+    optimiser's line search found no lower loss (None: fewer than two iterations)."""
+    return None if progress.last_step is None else np.asarray(progress.last_step) == 0
 
 
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state, floor: float) -> bool:
