@@ -99,7 +99,7 @@ def test_a_batch_finishes_each_member_on_its_own(scenes, monkeypatch):
     where its own segments' gradient vanishes (the exact one at the truth), with histories
     of equal lengths, finite (the member that took fewer steps is padded with its answer)."""
     monkeypatch.setattr(importlib.import_module("jaxspring.fit.least_squares"), "FINISH_BELOW", np.inf)
-    monkeypatch.setattr(importlib.import_module("jaxspring.fit.loop"), "_stalled", lambda p: np.ones(2, bool))
+    monkeypatch.setattr(importlib.import_module("jaxspring.fit.least_squares"), "stalled", lambda p: np.ones(2, bool))
     scene = scenes["chain"]
     names = ("ks", "kd", "cd")
     exact = js.synthetic_observations(scene, CHAIN_TRUTH, steps=200, save_every=10)

@@ -8,20 +8,25 @@ and their Jacobian, whose round-off enters a step linearly and averages out: fro
 point three steps take the damping to 1.4e-5 of the truth. So a stage whose objective is a
 least-squares misfit over short segments (multiple shooting from recorded states, where the
 misfit stays smooth) and whose optimiser stalled within round-off's reach (`FINISH_BELOW`)
-ends with Levenberg-Marquardt steps (`finish_segments`).
+ends with Levenberg-Marquardt steps (`finish_shooting_stage`, `finish_segments`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from ..sim.sharding import shard_batch
 from .horizon import round_off_loss
 from .objective import segment_misfit_function, target_data
+
+if TYPE_CHECKING:
+    from .results import FitProgress
 
 MAX_VALUES = 64
 """Levenberg-Marquardt takes a column of the Jacobian per fitted value: with more values than
@@ -110,13 +115,59 @@ def levenberg_marquardt(
     return Solution(history, flat, cost / max(r.size, 1))
 
 
-def finish_segments(scene, observations: list, names, segment: int, theta: dict, settings, misfits=None, stalled=None):
+def finish_shooting_stage(
+    scene, observations: list, names, segment: int, settings, progress: FitProgress, loss, sharded: bool
+):
+    """End a shooting stage (segments of `segment` frames from recorded states) with
+    Levenberg-Marquardt on its residuals (`finish_segments`) for the members whose optimiser
+    `stalled` with their misfit (`loss`, (B,): the stage's loss where each ended it) within
+    round-off's reach. The steps join the stage's history in `progress` as iterations (a
+    member that stops early repeats its answer) and its answers replace `progress.theta`
+    (placed on the devices again when the members are `sharded`).
+
+    Example:
+        >>> finish_shooting_stage(scene, [obs], ["ks", "kd"], 10, js.FitSettings(), progress, loss, False)
+    """
+    halted = stalled(progress)
+    if halted is None or not halted.any():
+        return
+    found = finish_segments(scene, observations, names, segment, progress.theta, settings, loss, halted)
+    if found is None:
+        return
+    solutions, unravel = found
+    values = lambda flat: {n: np.exp(np.asarray(x)) for n, x in unravel(jnp.asarray(flat)).items()}  # noqa: E731
+    for i in range(max(len(s.history) for s in solutions)):
+        rows = [s.history[i] if i < len(s.history) else (s.loss, s.flat) for s in solutions]
+        progress.loss.append(np.array([cost for cost, _ in rows]))
+        points = [values(flat) for _, flat in rows]
+        for n in names:
+            progress.values[n].append(np.stack([p[n] for p in points]))
+        progress.stage_of_iteration.append(progress.stage)
+        progress.iteration += 1
+    answers = [unravel(jnp.asarray(s.flat)) for s in solutions]
+    theta = dict(progress.theta)
+    for n in names:
+        theta[n] = jnp.stack([a[n] for a in answers]).astype(progress.theta[n].dtype)
+    progress.theta = shard_batch(theta) if sharded else theta
+
+
+def stalled(progress: FitProgress) -> np.ndarray | None:
+    """Per member, whether the stage's last two iterations left every value where it was: the
+    optimiser's line search found no lower loss (None: fewer than two iterations).
+
+    Example:
+        >>> stalled(progress)  # array([ True, False]): the first member's line search stalled
+    """
+    return None if progress.last_step is None else np.asarray(progress.last_step) == 0
+
+
+def finish_segments(scene, observations: list, names, segment: int, theta: dict, settings, misfits=None, halted=None):
     """Levenberg-Marquardt on the misfit of `segment`-frame segments from recorded states
     (the "shooting" stage's objective), from `theta` (name -> log values, (B, ...)), for each
     member of the batch (`observations` one target shared, or one per member): at most
     `settings.polish_iterations` steps, ending as `levenberg_marquardt` does with the
     settings' `step_tolerance` and `tolerance`. A member is left where it is (a Solution
-    without steps) unless its optimiser stalled (`stalled`, (B,) bools; None: every member)
+    without steps) unless its optimiser stalled (`halted`, (B,) bools; None: every member)
     with its misfit (`misfits`, (B,): the stage's loss there, so nothing is compiled for a
     member left alone; None: evaluated here) below `FINISH_BELOW` round-off losses.
 
@@ -136,7 +187,7 @@ def finish_segments(scene, observations: list, names, segment: int, theta: dict,
         target = observations[m if len(observations) > 1 else 0]
         data = target_data(target)
         start = np.asarray(ravel_pytree({n: jnp.asarray(theta[n][m]) for n in names})[0])
-        if stalled is not None and not stalled[m]:
+        if halted is not None and not halted[m]:
             solutions.append(Solution([], start, np.nan if misfits is None else float(misfits[m])))
             continue
         if misfits is None:

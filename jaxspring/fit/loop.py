@@ -19,7 +19,7 @@ from .best_point import best_of_stages, keep_best_of_stage
 from .ensemble import ensemble_step_function
 from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
 from .identifiability import gauss_newton_polish, identifiability, start_polish
-from .least_squares import finish_segments
+from .least_squares import finish_shooting_stage
 from .noisy_states import refit_from, refit_stages, why_refit
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
@@ -268,45 +268,9 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     if went_back:
         progress.theta = shard_batch(progress.theta) if members_sharded else progress.theta
     if stage.kind == "shooting" and not isinstance(reference, RecordingTarget):
-        _finish_segments(run, stage, progress, loss)
-
-
-def _finish_segments(run: _Run, stage: Stage, progress: FitProgress, loss):
-    """End a shooting stage (segments from recorded states) with Levenberg-Marquardt on its
-    residuals (`fit.least_squares`), which resolves what the optimiser's line search cannot
-    (in float32, the jelly's damping against its stiffness). Its steps join the stage's
-    history as iterations; a member that stops early repeats its answer. `loss`: the stage's
-    loss where each member ended it (None: measured here). Only members whose optimiser
-    stalled (`_stalled`) are finished."""
-    stalled = _stalled(progress)
-    if stalled is None or not stalled.any():
-        return
-    found = finish_segments(
-        run.scene, run.observations, run.names, stage.frames, progress.theta, run.settings, loss, stalled
-    )
-    if found is None:
-        return
-    solutions, unravel = found
-    values = lambda flat: {n: np.exp(np.asarray(x)) for n, x in unravel(jnp.asarray(flat)).items()}  # noqa: E731
-    for i in range(max(len(s.history) for s in solutions)):
-        rows = [s.history[i] if i < len(s.history) else (s.loss, s.flat) for s in solutions]
-        progress.loss.append(np.array([loss for loss, _ in rows]))
-        points = [values(flat) for _, flat in rows]
-        for n in run.names:
-            progress.values[n].append(np.stack([p[n] for p in points]))
-        progress.stage_of_iteration.append(progress.stage)
-        progress.iteration += 1
-    answers = [unravel(jnp.asarray(s.flat)) for s in solutions]
-    theta = dict(progress.theta)
-    for n in run.names:
-        theta[n] = jnp.stack([a[n] for a in answers]).astype(progress.theta[n].dtype)
-    progress.theta = shard_batch(theta) if run.members_sharded else theta
-
-
-def _stalled(progress: FitProgress) -> np.ndarray | None:
-    """Per member, whether the stage's last two iterations left every value where it was: the
-    optimiser's line search found no lower loss (None: fewer than two iterations)."""
-    return None if progress.last_step is None else np.asarray(progress.last_step) == 0
+        finish_shooting_stage(
+            run.scene, run.observations, names, stage.frames, run.settings, progress, loss, members_sharded
+        )
 
 
 def _converged(progress: FitProgress, settings: FitSettings, final_stage: bool, opt_state, floor: float) -> bool:
