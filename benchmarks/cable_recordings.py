@@ -19,7 +19,7 @@ m2_j = t_j x m1_j, and material curvatures w_i^j = (kb_i . m2_j, -kb_i . m1_j) f
     twist    sum_i   GJ/2 (th_i - th_{i-1})^2 / l                 GJ = 0.004 N m^2
 
 Dissipation (Rayleigh, on the rates of the same strains): eta_s = 0.3 N s on the axial strain,
-eta_b = 1.5e-4 N m^2 s on the curvatures, eta_t = 1e-4 N m^2 s on the twist. Air drag on every
+eta_b = 2e-5 N m^2 s on the curvatures, eta_t = 2e-6 N m^2 s on the twist. Air drag on every
 node, across and along the cable's local tangent: f = -c_n |v_n| v_n - c_t |v_t| v_t with
 c_n = 2e-3 and c_t = 5e-4 N s^2/m^2. Twist inertia 0.5 m_edge r^2, r = 5 mm. Symplectic
 Euler at dt = 5e-5 s in float64 (importing this module turns on jax_enable_x64).
@@ -175,13 +175,13 @@ def accelerations(x, v, theta, omega, frame, ref_twist, values, masses, extra_da
         return strains(x_all, th, frame, ref_twist)[0]
 
     s, sdot = jax.jvp(strain_of, (x, theta), (v, omega))  # the clamped nodes' motion included
-    l = SEGMENT
+    seg = SEGMENT
     bend = jnp.asarray(values["bend"])
-    rest = jnp.asarray(values["curvature"]) * l
+    rest = jnp.asarray(values["curvature"]) * seg
     cot = (
-        values["stretch"] * s[0] * l + values["eta_stretch"] * sdot[0] * l,
-        (bend * (s[1] - rest) + values["eta_bend"] * sdot[1]) / (2 * l),
-        (values["twist"] * s[2] + values["eta_twist"] * sdot[2]) / l,
+        values["stretch"] * s[0] * seg + values["eta_stretch"] * sdot[0] * seg,
+        (bend * (s[1] - rest) + values["eta_bend"] * sdot[1]) / (2 * seg),
+        (values["twist"] * s[2] + values["eta_twist"] * sdot[2]) / seg,
     )
     _, pullback = jax.vjp(strain_of, x, theta)
     force_all, torque = pullback(cot)
@@ -389,7 +389,9 @@ def make_cable_recordings(out_dir, train=8, held_out=14, seed=0, frames=500, val
         markers, gaps = observe(x[k], rng)
         t = rng.uniform(1.0, 5.0) + np.arange(frames) / FPS
         js.save_recording(file, js.Recording(t=t, x=markers, markers=[f"m{i}" for i in range(MARKER_NODES.size)]))
-        records.append(dict(file=str(file.relative_to(out)), seed=[seed, k], t0=float(t[0]), gaps=gaps, max_speed=float(speed[k])))
+        records.append(
+            dict(file=str(file.relative_to(out)), seed=[seed, k], t0=float(t[0]), gaps=gaps, max_speed=float(speed[k]))
+        )
     truth = dict(values={k: np.asarray(v).tolist() for k, v in values.items()}, gravity=GRAVITY, edges=EDGES)
     truth |= dict(length=LENGTH, mass=MASS, clamp_edges=CLAMP, integrator="symplectic_euler", dt=dt, fps=FPS)
     truth |= dict(frames=frames, noise_std=NOISE, marker_nodes=MARKER_NODES.tolist(), driven_markers=DRIVEN_MARKERS)
