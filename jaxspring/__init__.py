@@ -27,14 +27,14 @@ from .fit import (
     smooth_horizon,
     synthetic_observations,
 )
-from .fit.predict import Prediction, predict
+from .fit.predict import ErrorSummary, Prediction, predict, summarise
 from .fit.recordings import RecordingTarget, recording_target
 from .io.experiment import Experiment, load_experiment, observations_from_file
 from .io.fit_file import load_fit_progress, save_fit
 from .io.recording import Recording, load_recording, save_recording
 from .io.scene import builtin_scenes, load_scene, scene_from_dict
 from .io.trajectory import load_trajectory, save_trajectory
-from .render import plot_fit, plot_prediction, render
+from .render import plot_error_summary, plot_fit, plot_prediction, render
 from .sim.driven import Drive
 from .sim.forces import register_term, safe_norm
 from .sim.integrators import (
@@ -99,6 +99,9 @@ __all__ = [
     "RecordingTarget",
     "recording_target",
     "predict",
+    "summarise",
+    "ErrorSummary",
+    "plot_error_summary",
     "Prediction",
     "plot_prediction",
     "load_recording",

@@ -199,11 +199,49 @@ def plot_prediction(prediction, out, markers: int = 4) -> Path:
     paths.legend(loc="best", fontsize=8)
     distance = np.linalg.norm(p.x - p.recorded, axis=-1)[p.start :]
     with np.errstate(invalid="ignore"):
-        errors.plot(p.t[p.start :], 1e3 * np.nanmean(distance, axis=1), color="black", label="mean over markers")
+        errors.plot(p.t[p.start :], 1e3 * np.nanmean(distance, axis=1), color="black", label="mean distance")
         errors.plot(
             p.t[p.start :], 1e3 * np.nanmax(distance, axis=1), color="tab:red", linewidth=0.8, label="worst marker"
         )
-    errors.set(xlabel="t [s]", ylabel="error [mm]", title=f"mean abs. error {1e3 * p.mean_absolute_error:.2f} mm")
+    errors.set(
+        xlabel="t [s]",
+        ylabel="distance [mm]",
+        title=f"mean |error| {1e3 * p.mean_coordinate_error:.2f} mm per coordinate, {1e3 * p.mean_distance:.2f} mm distance",
+    )
     errors.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    return save_figure(fig, Path(out))
+
+
+def plot_error_summary(summary, predictions, out) -> Path:
+    """The pooled error of `predictions` (`summarise`) per marker (bars) and over time since the
+    start (mean over recordings, with each recording's own curve faint), as a PNG written atomically.
+
+    Example:
+        >>> out = js.predict(scene, values, recordings, driven=[0, 1, 10, 11])
+        >>> js.plot_error_summary(js.summarise(out), out, "errors.png")
+    """
+    plt = pyplot()
+    fig, (bars, curve) = plt.subplots(1, 2, figsize=(11, 3.8), dpi=90)
+    per_marker = 1e3 * summary.marker_coordinate_error
+    names = predictions[0].marker_names or tuple(str(k) for k in range(per_marker.size))
+    bars.bar(np.arange(per_marker.size), per_marker, color="tab:blue")
+    bars.set_xticks(np.arange(per_marker.size), names, rotation=60 if per_marker.size > 8 else 0, fontsize=8)
+    bars.axhline(1e3 * summary.mean_coordinate_error, color="black", linewidth=0.8, label="all markers")
+    bars.set(ylabel="mean |error| per coordinate [mm]", title=f"per marker ({len(predictions)} recordings)")
+    bars.legend(loc="best", fontsize=8)
+    with np.errstate(invalid="ignore"):
+        for p in predictions:
+            e = p.coordinate_errors
+            if e.size:
+                curve.plot(summary.time[: e.shape[0]], 1e3 * np.nanmean(e, axis=(1, 2)), color="0.75", linewidth=0.6)
+    curve.plot(summary.time, 1e3 * summary.over_time, color="black", label="mean over recordings")
+    curve.set(
+        xlabel="time since the start frame [s]",
+        ylabel="mean |error| per coordinate [mm]",
+        title=f"over time: {1e3 * summary.mean_coordinate_error:.2f} mm overall"
+        f" ({1e3 * summary.mean_distance:.2f} mm distance)",
+    )
+    curve.legend(loc="best", fontsize=8)
     fig.tight_layout()
     return save_figure(fig, Path(out))

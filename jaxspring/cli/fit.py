@@ -247,13 +247,25 @@ def _evaluate(experiment, result):
 
 
 def print_errors(title, predictions):
-    """One line per prediction (mean absolute and RMS marker error after its start) and their means."""
-    print(f"{title:<24} {'mean abs. error [mm]':>21} {'RMS error [mm]':>15} {'frozen at start [mm]':>21}")
-    for p in predictions:
+    """One line per prediction and one pooled over all (every seen marker coordinate after the
+    start counts once): mean |error| per coordinate, mean and RMS distance, and the same for
+    the frozen-at-start baseline; then the pooled mean |error| per marker."""
+    from ..fit.predict import summarise
+
+    print(
+        f"{title:<24} {'mean |error| per coordinate [mm]':>33} {'mean distance [mm]':>19} {'RMS distance [mm]':>18}"
+        f" {'frozen at start: per coordinate, distance [mm]':>47}"
+    )
+    rows = [(p.name, p) for p in predictions]
+    summary = summarise(predictions)
+    if len(predictions) > 1:
+        rows.append((f"all {len(predictions)} (pooled)", summary))
+    for name, p in rows:
+        frozen = f"{1e3 * p.frozen_coordinate_error:.3f}, {1e3 * p.frozen_distance:.3f}"
         print(
-            f"{p.name:<24} {1e3 * p.mean_absolute_error:>21.3f} {1e3 * p.rms_error:>15.3f} {1e3 * p.frozen_error:>21.3f}"
+            f"{name:<24} {1e3 * p.mean_coordinate_error:>33.3f} {1e3 * p.mean_distance:>19.3f}"
+            f" {1e3 * p.rms_error:>18.3f} {frozen:>47}"
         )
-    means = [
-        np.mean([getattr(p, k) for p in predictions]) for k in ("mean_absolute_error", "rms_error", "frozen_error")
-    ]
-    print(f"{'mean':<24} {1e3 * means[0]:>21.3f} {1e3 * means[1]:>15.3f} {1e3 * means[2]:>21.3f}")
+    names = predictions[0].marker_names or tuple(str(k) for k in range(summary.marker_coordinate_error.size))
+    cells = [f"{n} {1e3 * e:.2f}" for n, e in zip(names, summary.marker_coordinate_error)]
+    print(f"per marker, mean |error| per coordinate [mm]: {', '.join(cells)}")

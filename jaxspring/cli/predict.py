@@ -12,7 +12,9 @@ def add_parser(sub):
     parser = sub.add_parser("predict", help="predict recordings with fitted values; print and write the error")
     parser.add_argument("fit", help="fit file written by `jaxspring fit` on recordings")
     parser.add_argument("recordings", nargs="+", help="recording files (.h5 or .csv) to predict")
-    parser.add_argument("--out-dir", required=True, help="folder for DIR/<recording stem>.h5 and .png")
+    parser.add_argument(
+        "--out-dir", required=True, help="folder for DIR/<recording stem>.h5 and .png, and DIR/errors.png"
+    )
     parser.add_argument(
         "--bands",
         type=int,
@@ -30,11 +32,11 @@ def command(args):
     import jax
 
     from ..errors import InputError
-    from ..fit.predict import predict
+    from ..fit.predict import predict, summarise
     from ..io.fit_file import load_fitted
     from ..io.recording import load_recording, save_recording
     from ..io.scene import scene_from_dict
-    from ..render import plot_prediction
+    from ..render import plot_error_summary, plot_prediction
     from .fit import print_errors
 
     jax.config.update("jax_enable_x64", True)
@@ -46,12 +48,14 @@ def command(args):
     stems = [Path(p).stem for p in args.recordings]
     if len(set(stems)) != len(stems):
         raise InputError("recordings", "two recordings share a file name", "give recordings with distinct names")
+    if "errors" in stems and not args.no_plot:
+        raise InputError("recordings", "a recording named errors would overwrite errors.png", "rename it")
     fitted = load_fitted(args.fit)
     info = fitted["prediction"]
     scene = scene_from_dict(tomllib.loads(info["scene_toml"]))
     recordings = [load_recording(p) for p in args.recordings]
     outputs = [out_dir / f"{stem}.h5" for stem in stems]
-    pictures = [] if args.no_plot else [path.with_suffix(".png") for path in outputs]
+    pictures = [] if args.no_plot else [path.with_suffix(".png") for path in outputs] + [out_dir / "errors.png"]
     for path in outputs + pictures:  # refused before the folder is made
         if any(same_file(path, Path(source)) for source in [args.fit, *args.recordings]):
             raise InputError("--out-dir", f"{str(path)!r} is also an input of this command", "choose another folder")
@@ -81,13 +85,16 @@ def command(args):
         )
         if not args.no_plot:
             plot_prediction(p, path.with_suffix(".png"))
+    summary = summarise(predictions)
     if args.quiet:
-        import numpy as np
-
-        print(f"mean abs. error {1e3 * np.mean([p.mean_absolute_error for p in predictions]):.3f} mm")
+        print(
+            f"mean |error| per coordinate {1e3 * summary.mean_coordinate_error:.3f} mm, "
+            f"mean distance {1e3 * summary.mean_distance:.3f} mm"
+        )
     else:
         print_errors("recording", predictions)
     if args.bands:
-        coverage = [p.coverage for p in predictions]
-        print(f"95% band holds {100 * sum(coverage) / len(coverage):.1f}% of the seen marker coordinates")
+        print(f"95% band holds {100 * summary.coverage:.1f}% of the seen marker coordinates")
+    if not args.no_plot:
+        plot_error_summary(summary, predictions, out_dir / "errors.png")
     print(f"wrote {len(outputs)} predictions to {out_dir}", file=sys.stderr if args.quiet else sys.stdout)

@@ -17,18 +17,27 @@ from .recordings import RecordingTarget, recording_target
 class Prediction:
     """One recording predicted from its start frame.
 
+    Errors are taken over the frames after `start` and every marker seen there (the driven
+    ones too). Two names for two numbers: `mean_coordinate_error` is the mean |error| over the
+    x, y and z coordinates (the number motion-capture papers quote), `mean_distance` the mean
+    Euclidean distance between predicted and seen markers (about 1.6x larger for errors in
+    random directions).
+
     Attributes:
         name: the recording's name.
         t: frame times [s], (F,), the recording's.
         x: predicted marker positions [m], (F, M, 3); frames before `start` copied from the recording.
         recorded: the recording's marker positions (NaN where not seen).
         start: the first simulated frame.
-        mean_absolute_error: mean distance [m] between predicted and seen markers after `start`.
+        mean_coordinate_error: mean |predicted - seen| per coordinate [m].
+        mean_distance: mean distance |predicted - seen| [m].
         rms_error: root-mean-square of that distance [m].
+        marker_coordinate_error: mean |error| per coordinate of each marker [m], (M,) (NaN for a
+            marker never seen after `start`); marker_seen: its seen frames after `start`, (M,).
         low, high: the 95% prediction band per marker, frame and axis (None without bands).
         coverage: the fraction of seen marker coordinates after `start` inside the band.
-        frozen_error: the baseline: mean distance [m] when the free markers stay where they were
-            at `start` and the driven ones move as recorded.
+        frozen_coordinate_error, frozen_distance: the baseline: the same errors when the free
+            markers stay where they were at `start` and the driven ones move as recorded.
     """
 
     name: str
@@ -36,12 +45,95 @@ class Prediction:
     x: np.ndarray
     recorded: np.ndarray
     start: int
-    mean_absolute_error: float
+    mean_coordinate_error: float
+    mean_distance: float
     rms_error: float
+    marker_coordinate_error: np.ndarray
+    marker_seen: np.ndarray
     low: np.ndarray | None = None
     high: np.ndarray | None = None
     coverage: float | None = None
-    frozen_error: float | None = None
+    frozen_coordinate_error: float | None = None
+    frozen_distance: float | None = None
+    marker_names: tuple = ()
+
+    @property
+    def coordinate_errors(self) -> np.ndarray:
+        """|predicted - seen| [m] after `start`, (F - start - 1, M, 3), NaN where not seen."""
+        return np.abs(self.x[self.start + 1 :] - self.recorded[self.start + 1 :])
+
+
+@dataclasses.dataclass(frozen=True)
+class ErrorSummary:
+    """Errors pooled over predictions: every seen marker coordinate after each start counts once.
+
+    Attributes:
+        mean_coordinate_error, mean_distance, rms_error: as in `Prediction` [m], pooled.
+        frozen_coordinate_error, frozen_distance: the frozen-at-start baseline, pooled [m].
+        marker_coordinate_error: per marker [m], (M,).
+        over_time: mean |error| per coordinate at each frame after the start over every
+            recording long enough [m], (F,), with `time` [s] from the start frame.
+        coverage: pooled 95% band coverage (None without bands).
+    """
+
+    mean_coordinate_error: float
+    mean_distance: float
+    rms_error: float
+    frozen_coordinate_error: float
+    frozen_distance: float
+    marker_coordinate_error: np.ndarray
+    over_time: np.ndarray
+    time: np.ndarray
+    coverage: float | None
+
+
+def summarise(predictions) -> ErrorSummary:
+    """Pool the errors of `predictions` (of one marker set): see `ErrorSummary`.
+
+    Example:
+        >>> summary = js.summarise(js.predict(scene, values, recordings, driven=[0, 1, 10, 11]))
+        >>> summary.mean_coordinate_error  # [m]
+    """
+    predictions = list(predictions)
+    if not predictions:
+        raise ValueError("no predictions to summarise")
+    errors = [p.coordinate_errors for p in predictions]
+    flat = np.concatenate([e[np.isfinite(e)] for e in errors])
+    distances = [np.sqrt(np.sum(e**2, axis=-1)) for e in errors]
+    flat_d = np.concatenate([d[np.isfinite(d)] for d in distances])
+    count = np.sum([p.marker_seen for p in predictions], axis=0)
+    longest = max(e.shape[0] for e in errors)
+    totals, counts = np.zeros(longest), np.zeros(longest)
+    for e in errors:
+        finite = np.isfinite(e)
+        totals[: e.shape[0]] += np.where(finite, e, 0.0).sum(axis=(1, 2))
+        counts[: e.shape[0]] += finite.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_marker = np.nansum([p.marker_coordinate_error * p.marker_seen for p in predictions], axis=0) / count
+        over_time = totals / counts
+    seen = [np.isfinite(e).all(axis=-1).sum() for e in errors]
+    frozen_c = np.sum([p.frozen_coordinate_error * n for p, n in zip(predictions, seen)]) / max(sum(seen), 1)
+    frozen_d = np.sum([p.frozen_distance * n for p, n in zip(predictions, seen)]) / max(sum(seen), 1)
+    first = predictions[0]
+    interval = float(np.median(np.diff(first.t))) if first.t.size > 1 else 1.0
+    time = interval * np.arange(1, longest + 1)
+    covered = [p.coverage for p in predictions if p.coverage is not None]
+    coverage = (
+        float(np.sum([c * n for c, n in zip(covered, seen)]) / max(sum(seen), 1))
+        if len(covered) == len(predictions)
+        else None
+    )
+    return ErrorSummary(
+        mean_coordinate_error=float(flat.mean()) if flat.size else float("nan"),
+        mean_distance=float(flat_d.mean()) if flat_d.size else float("nan"),
+        rms_error=float(np.sqrt(np.mean(flat_d**2))) if flat_d.size else float("nan"),
+        frozen_coordinate_error=float(frozen_c),
+        frozen_distance=float(frozen_d),
+        marker_coordinate_error=per_marker,
+        over_time=over_time,
+        time=time,
+        coverage=coverage,
+    )
 
 
 def simulator(scene, target: RecordingTarget):
@@ -83,7 +175,7 @@ def predict(
     Example:
         >>> result = js.fit(scene, target, names)
         >>> out = js.predict(scene, result.final, [js.load_recording("held_out.h5")], driven=[0, 11])
-        >>> out[0].mean_absolute_error
+        >>> out[0].mean_coordinate_error, out[0].mean_distance
     """
     recordings = list(recordings)
     target = recording_target(scene, recordings, markers, driven, start, smooth, names=names)
@@ -105,17 +197,19 @@ def predict(
         used = int(target.lengths[i])
         x = np.array(rec.x)
         x[start:] = simulated[i, :used]
-        d = np.linalg.norm(x[start + 1 :] - rec.x[start + 1 :], axis=-1)
+        seen = rec.x[start + 1 :]
+        error = np.abs(x[start + 1 :] - seen)  # NaN where not seen
         frozen = np.repeat(rec.x[start : start + 1], rec.frame_count - start - 1, axis=0)
-        frozen[:, carriers(target)] = rec.x[start + 1 :, carriers(target)]
-        baseline = np.linalg.norm(frozen - rec.x[start + 1 :], axis=-1)
-        baseline = baseline[np.isfinite(d) & np.isfinite(baseline)]
-        d = d[np.isfinite(d)]
+        frozen[:, carriers(target)] = seen[:, carriers(target)]
+        frozen_error = np.abs(frozen - seen)
+        both = np.isfinite(error).all(axis=-1) & np.isfinite(frozen_error).all(axis=-1)
+        marker_seen = np.isfinite(error).all(axis=-1).sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_marker = np.nansum(error, axis=(0, 2)) / (3 * marker_seen)
         band = {}
         if low is not None:
             lo, hi = np.array(rec.x), np.array(rec.x)
             lo[start:], hi[start:] = low[i, :used], high[i, :used]
-            seen = rec.x[start + 1 :]
             inside = (seen >= lo[start + 1 :]) & (seen <= hi[start + 1 :])
             band = {"low": lo, "high": hi, "coverage": float(inside[np.isfinite(seen)].mean())}
         out.append(
@@ -125,13 +219,26 @@ def predict(
                 x=x,
                 recorded=np.asarray(rec.x),
                 start=start,
-                mean_absolute_error=float(d.mean()) if d.size else float("nan"),
-                rms_error=float(np.sqrt(np.mean(d**2))) if d.size else float("nan"),
-                frozen_error=float(baseline.mean()) if baseline.size else float("nan"),
+                mean_coordinate_error=_mean(error[np.isfinite(error)]),
+                mean_distance=_mean(_norm(error)[np.isfinite(_norm(error))]),
+                rms_error=float(np.sqrt(_mean(_norm(error)[np.isfinite(_norm(error))] ** 2))),
+                marker_coordinate_error=per_marker,
+                marker_seen=marker_seen,
+                frozen_coordinate_error=_mean(frozen_error[both]),
+                frozen_distance=_mean(_norm(frozen_error)[both]),
+                marker_names=tuple(rec.markers),
                 **band,
             )
         )
     return out
+
+
+def _norm(error):
+    return np.sqrt(np.sum(error**2, axis=-1))
+
+
+def _mean(values) -> float:
+    return float(np.mean(values)) if np.size(values) else float("nan")
 
 
 def _draw(values: dict, covariance: dict, samples: int, seed: int) -> dict:
