@@ -29,6 +29,7 @@ from .fit import (
 )
 from .fit.predict import ErrorSummary, Prediction, predict, summarise
 from .fit.recordings import RecordingTarget, recording_target
+from .io.cable import CableModel, cable_scene
 from .io.experiment import Experiment, load_experiment, observations_from_file
 from .io.fit_file import load_fit_progress, save_fit
 from .io.recording import Recording, load_recording, save_recording
@@ -99,6 +100,8 @@ __all__ = [
     "RecordingTarget",
     "recording_target",
     "predict",
+    "cable_scene",
+    "CableModel",
     "summarise",
     "ErrorSummary",
     "plot_error_summary",

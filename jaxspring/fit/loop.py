@@ -26,6 +26,7 @@ from .observations import Observations
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
+from .search import needs_search, search_start
 from .settings import SEGMENT_STATES, FitSettings, Stage, needs_horizon, plan_stages
 from .shooting import describe, free_shooting_stage, segment_fitter
 from .step import step_function
@@ -122,11 +123,16 @@ def fit_batch(
         raise InputError("init", "start values of different shapes", "give each parameter one shape") from None
     scene.with_values({n: np.ones(shapes[n]) for n in names})  # a shape the parameter cannot take is an InputError
     stages = plan_stages(reference, settings, scene, values=sum(math.prod(shapes[n]) for n in names))
+    search = None
+    if progress is None and needs_search(reference, settings, members):  # recordings: find a start first
+        search = search_start(scene, reference, names, start_values[0], settings)
     if progress is None:
-        theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(s[n], shapes[n])) for s in start_values]) for n in names}
+        first = [search.chosen] if search else start_values
+        theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(jnp.asarray(s[n]), shapes[n])) for s in first]) for n in names}
         for key, value in start_unknowns(reference).items():  # a fitted start state (recordings)
             theta[key] = jnp.broadcast_to(value, (members,) + value.shape)
         progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
+        progress.wall_s = search.wall_s if search else 0.0
     members_sharded = jax.device_count() > 1 and members % jax.device_count() == 0
     if members_sharded:  # members across devices
         progress.theta = shard_batch(progress.theta)
@@ -186,7 +192,10 @@ def fit_batch(
         progress.wall_s = time.perf_counter() - start_clock
         if on_iteration:
             on_iteration(progress, stages)
-    return _results(scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits)
+    results = _results(
+        scene, observations, names, start_values, settings, stages, progress, data, identify, segment_fits
+    )
+    return [dataclasses.replace(r, search=search) for r in results] if search else results
 
 
 @dataclasses.dataclass(frozen=True)

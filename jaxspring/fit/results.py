@@ -70,6 +70,7 @@ class FitResult:
             states, "segment_x", "segment_v": the segments' fitted start states (S, N, 3),
             "segment_frame": each segment's first frame (S,) (segments that touch the ground
             are left out).
+        search: the start search's `fit.search.SearchReport` on recordings (None without one).
     """
 
     names: tuple
@@ -85,6 +86,7 @@ class FitResult:
     truth: dict | None = None
     truth_label: str = "true"
     estimated: dict | None = None
+    search: object | None = None
 
     @property
     def final_loss(self) -> float:
@@ -98,6 +100,13 @@ class FitResult:
             n: float(np.max(np.abs(np.asarray(self.final[n]) - self.truth[n]) / np.abs(self.truth[n])))
             for n in self.names
             if n in self.truth
+        }
+
+    def moved(self) -> dict:
+        """name -> fitted / initial value (the mean ratio for per-item parameters)."""
+        return {
+            n: float(np.mean(np.asarray(self.final[n], dtype=float) / np.asarray(self.initial[n], dtype=float)))
+            for n in self.names
         }
 
     def table(self) -> str:
@@ -115,6 +124,16 @@ class FitResult:
             se = _short(ident.standard_error[n]) if ident else ""
             rows.append(f"{n:<{width}}{_short(self.initial[n]):>12}{_short(value):>14}{true:>12}{rel:>12}{se:>12}")
         rows.append(f"final loss {self.final_loss:.4g} m^2 after {self.iterations} iterations in {self.wall_s:.2f} s")
+        if self.search is not None:
+            rows.append(self.search.summary())
+        moved = self.moved()
+        stalled = [n for n, r in moved.items() if abs(r - 1) < 0.01]
+        rows.append("moved from the initial values: " + ", ".join(f"{n} x{r:.3g}" for n, r in moved.items()))
+        if stalled:
+            rows.append(
+                f"note: {', '.join(stalled)} moved less than 1% from the initial values (fine if they were right;"
+                " a fit that stalls at its start has not measured them: try other initial values)"
+            )
         if ident:
             rows.append(f"minimised: {ident.objective}")
             rows += [f"warning: {w}" for w in ident.warnings]

@@ -78,6 +78,12 @@ class FitSettings:
             segment states ("free_shooting"; kept whole when every segment touches the
             ground). The default, 10%, is farther than a shooting answer lies from the
             truth on the seed scenes.
+        starts, start_spread: with strategy "auto" on recordings and one start, the fit
+            first searches for its start (`fit.search`): `starts` points between the start
+            values / `start_spread` and x `start_spread` (in log space, the given start among
+            them) fitted on the first eighth of the recordings, the best refitted on half,
+            then kept if the whole-horizon misfit is lower there than at the given start.
+            `starts` = 1 skips the search.
     """
 
     optimizer: str = "lbfgs"
@@ -96,6 +102,8 @@ class FitSettings:
     ensemble_members: int = 32
     ensemble_spread: float = 0.3
     horizon_spread: float = 0.1
+    starts: int = 8
+    start_spread: float = 10.0
 
     def validate(self):
         if self.optimizer not in OPTIMIZERS:
@@ -110,7 +118,9 @@ class FitSettings:
             )
         if int(self.ensemble_members) < 4 or int(self.ensemble_members) % 2:
             raise InputError("ensemble_members", "must be an even number >= 4", "set e.g. ensemble_members = 32")
-        for name in ("iterations", "segment_frames", "long_horizon_steps", "polish_iterations"):
+        if not (math.isfinite(float(self.start_spread)) and float(self.start_spread) >= 1):
+            raise InputError("start_spread", "must be a finite factor >= 1", "set e.g. start_spread = 10")
+        for name in ("iterations", "segment_frames", "long_horizon_steps", "polish_iterations", "starts"):
             if int(getattr(self, name)) < 1:
                 raise InputError(name, "must be >= 1", f"set a positive {name}")
         for name in (

@@ -238,6 +238,8 @@ def _experiment_from_dict(document: dict, path: Path) -> Experiment:
         ensemble=fit_table.take("ensemble", schema.string, default=defaults.ensemble),
         ensemble_members=fit_table.take("ensemble_members", schema.count, default=defaults.ensemble_members),
         horizon_spread=fit_table.take("horizon_spread", schema.number, default=defaults.horizon_spread),
+        starts=fit_table.take("starts", schema.count, default=defaults.starts),
+        start_spread=fit_table.take("start_spread", schema.number, default=defaults.start_spread),
     )
     backend = fit_table.take("backend", schema.string)
     loss = fit_table.take("loss", schema.string, default="mse")

@@ -1,0 +1,185 @@
+"""Cables: fit recordings of a model jaxspring does not contain, predict held-out ones.
+
+The recordings come from benchmarks/cable_recordings.py (a discrete elastic rod with twist,
+natural curvature, non-uniform mass and anisotropic drag, clamped with orientation by two
+grippers; 12 markers at 100 Hz, 1 mm noise, drop-outs). Every variant below is fitted to the
+training recordings with `js.fit` (default settings) and predicts the held-out ones from their
+start frame with the grippers' markers driven as recorded. The floor is the baseline "free
+markers frozen at the start frame". Each variant runs in its own process, so its wall time and
+peak memory (max RSS) are its own.
+
+    python benchmarks/cables.py [--data DIR] [--train 8 --held-out 14 --frames 500] [--variants a,b]
+    python benchmarks/cables.py --starts 0.1,1,10      # the start sweep: every start value x each factor
+
+Writes benchmarks/results/cables_<train>x<frames>.md (and, with --starts, the sweep's table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).parent
+VARIANTS = {  # name: (description, cable_scene keyword arguments)
+    "rope": ("rope, a particle per marker, straight at rest", dict(subdivide=1, rest="straight")),
+    "rope_rest": ("rope, a particle per marker, rest shape from data", dict(subdivide=1, rest="data")),
+    "cable2": ("cable, 2 particles per marker interval, straight at rest", dict(subdivide=2, rest="straight")),
+    "cable2_rest": ("cable, 2 per interval, rest shape from data", dict(subdivide=2, rest="data")),
+    "cable3_groups": (
+        "cable, 3 per interval, straight, 3 segment groups",
+        dict(subdivide=3, rest="straight", groups=3),
+    ),
+}
+START, SMOOTH, MASS, DRIVEN = 5, 5, 0.2, (0, 1, -2, -1)
+
+
+def load(folder: Path, part: str, frames: int):
+    import jaxspring as js
+
+    out = []
+    for path in sorted((folder / part).glob("*.h5")):
+        r = js.load_recording(path)
+        out.append(js.Recording(t=r.t[:frames], x=r.x[:frames], markers=r.markers))
+    return out
+
+
+def run_variant(folder: Path, name: str, frames: int, factor: float) -> dict:
+    """Fit one variant (in this process) and predict the held-out recordings; the numbers as a dict."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxspring as js
+
+    train, held = load(folder, "train", frames), load(folder, "held_out", frames)
+    cable = js.cable_scene(train, driven=DRIVEN, mass=MASS, reference=(0, START), **VARIANTS[name][1])
+    scene = js.scene_from_dict(cable.scene)
+    target = js.recording_target(scene, train, markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
+    physics = cable.scene["physics"]
+    params = [f"ks.{g}" for g in physics["ks"]] + [f"kd.{g}" for g in physics["kd"]] + ["cd"]
+    init = {f"{k}.{g}": factor * v for k in ("ks", "kd") for g, v in physics[k].items()} | {
+        "cd": factor * physics["cd"]
+    }
+    clock = time.perf_counter()
+    result = js.fit(scene, target, params, init=init)
+    fit_s = time.perf_counter() - clock
+    options = dict(markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
+    fitted = js.summarise(js.predict(scene, result.final, held, **options))
+    started = js.summarise(js.predict(scene, init, held, **options))
+    moved = {n: float(result.final[n]) / init[n] for n in params}
+    return dict(
+        name=name,
+        particles=int(scene.state.x.shape[0]),
+        params=len(params),
+        factor=factor,
+        fit_s=fit_s,
+        iterations=int(result.iterations),
+        train_loss=float(result.loss_history[-1]),
+        coordinate=fitted.mean_coordinate_error,
+        distance=fitted.mean_distance,
+        frozen_coordinate=fitted.frozen_coordinate_error,
+        frozen_distance=fitted.frozen_distance,
+        start_coordinate=started.mean_coordinate_error,
+        moved=moved,
+        peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    )
+
+
+def child(folder: Path, name: str, frames: int, factor: float) -> dict:
+    """`run_variant` in a fresh process (its own wall time and peak memory)."""
+    argv = [sys.executable, __file__, "--data", str(folder), "--frames", str(frames), "--child", name]
+    argv += ["--factor", repr(factor)]
+    done = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    if done.returncode:
+        raise SystemExit(f"variant {name} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def table(rows: list[dict], title: str) -> list[str]:
+    lines = [
+        title,
+        "",
+        "| variant | particles | fitted values | fit [s] | peak memory [MB] | training misfit [mm^2] "
+        "| held-out mean abs. error per coordinate [mm] | mean distance [mm] | at the start values [mm] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {VARIANTS[r['name']][0]} | {r['particles']} | {r['params']} | {r['fit_s']:.0f} | {r['peak_mb']:.0f} "
+            f"| {1e6 * r['train_loss']:.1f} | {1e3 * r['coordinate']:.2f} | {1e3 * r['distance']:.2f} "
+            f"| {1e3 * r['start_coordinate']:.2f} |"
+        )
+    r = rows[0]
+    lines.append(
+        f"| floor: free markers frozen at the start frame | | | | | | {1e3 * r['frozen_coordinate']:.2f} "
+        f"| {1e3 * r['frozen_distance']:.2f} | |"
+    )
+    return lines
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", help="folder of cable_recordings.py output (default: made in a temporary folder)")
+    parser.add_argument("--train", type=int, default=8)
+    parser.add_argument("--held-out", type=int, default=14)
+    parser.add_argument("--frames", type=int, default=500)
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    parser.add_argument("--starts", help="start sweep: factors on every start value (e.g. 0.1,1,10), best variant")
+    parser.add_argument("--out", help="results file (default benchmarks/results/cables_<train>x<frames>.md)")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--factor", type=float, default=1.0, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(run_variant(Path(args.data), args.child, args.frames, args.factor)))
+        return
+    folder = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="jaxspring-cables-"))
+    if not (folder / "truth.json").exists():
+        sys.path.insert(0, str(HERE))
+        import cable_recordings
+
+        cable_recordings.make_cable_recordings(folder, train=args.train, held_out=args.held_out, frames=args.frames)
+    names = args.variants.split(",")
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown variant {unknown[0]!r}: give some of {', '.join(VARIANTS)}")
+    title = (
+        f"# Cables: fit {args.train} x {args.frames} frames, predict {args.held_out} held out "
+        f"(benchmarks/cables.py, {os.cpu_count()} cores)"
+    )
+    rows = []
+    for name in names:
+        rows.append(child(folder, name, args.frames, 1.0))
+        print(json.dumps(rows[-1]), flush=True)
+    lines = table(rows, title)
+    if args.starts:
+        best = min(rows, key=lambda r: r["coordinate"])
+        sweep = [child(folder, best["name"], args.frames, float(f)) for f in args.starts.split(",")]
+        top = min(r["coordinate"] for r in sweep)
+        lines += [
+            "",
+            f"Start sweep of {VARIANTS[best['name']][0]}: every start value times a factor.",
+            "",
+            "| start factor | fit [s] | held-out mean abs. error per coordinate [mm] | within 5% of the best | "
+            "largest move (fitted / start) |",
+            "|---|---|---|---|---|",
+        ]
+        for r in sweep:
+            move = max(r["moved"].values(), key=lambda m: abs(math.log(m)))
+            lines.append(
+                f"| {r['factor']:g} | {r['fit_s']:.0f} | {1e3 * r['coordinate']:.2f} "
+                f"| {'yes' if r['coordinate'] <= 1.05 * top else 'no'} | {move:.3g} |"
+            )
+    out = Path(args.out) if args.out else HERE / "results" / f"cables_{args.train}x{args.frames}.md"
+    out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
