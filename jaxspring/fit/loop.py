@@ -78,7 +78,7 @@ def fit_batch(
     Each stage's iteration is compiled up front and refused (InputError) when XLA's memory
     plan for it exceeds the memory available or `max_memory` bytes.
     `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
-    after every iteration (the CLI checkpoints from it). With several devices and a
+    after every iteration (the CLI checkpoints from it). With several devices in one process and a
     member count divisible by their number, the members are split across them
     (`shard_batch`); otherwise the recordings of a `RecordingTarget`, when their count
     divides by the devices' (each device simulates its share; the loss sums over all).
@@ -133,7 +133,9 @@ def fit_batch(
             theta[key] = jnp.broadcast_to(value, (members,) + value.shape)
         progress = FitProgress(0, 0, theta, None, [], {n: [] for n in names}, [])
         progress.wall_s = search.wall_s if search else 0.0
-    members_sharded = jax.device_count() > 1 and members % jax.device_count() == 0
+    # members across the devices of one process; across processes, each member's values would
+    # live on one process only (the recordings are split across processes instead)
+    members_sharded = jax.process_count() == 1 and jax.device_count() > 1 and members % jax.device_count() == 0
     if members_sharded:  # members across devices
         progress.theta = shard_batch(progress.theta)
         if batched_data:
