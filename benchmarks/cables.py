@@ -33,6 +33,14 @@ VARIANTS = {  # name: (description, cable_scene keyword arguments)
     "rope_rest": ("rope, a particle per marker, rest shape from data", dict(subdivide=1, rest="data")),
     "cable2": ("cable, 2 particles per marker interval, straight at rest", dict(subdivide=2, rest="straight")),
     "cable2_rest": ("cable, 2 per interval, rest shape from data", dict(subdivide=2, rest="data")),
+    "rope_bending": (
+        "rope, a particle per marker, rest shape from data, bending term",
+        dict(subdivide=1, rest="data", bending=True),
+    ),
+    "cable2_bending": (
+        "cable, 2 per interval, rest shape from data, bending term",
+        dict(subdivide=2, rest="data", bending=True),
+    ),
     "cable3_groups": (
         "cable, 3 per interval, straight, 3 segment groups",
         dict(subdivide=3, rest="straight", groups=3),
@@ -63,10 +71,10 @@ def run_variant(folder: Path, name: str, frames: int, factor: float) -> dict:
     scene = js.scene_from_dict(cable.scene)
     target = js.recording_target(scene, train, markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
     physics = cable.scene["physics"]
-    params = [f"ks.{g}" for g in physics["ks"]] + [f"kd.{g}" for g in physics["kd"]] + ["cd"]
-    init = {f"{k}.{g}": factor * v for k in ("ks", "kd") for g, v in physics[k].items()} | {
-        "cd": factor * physics["cd"]
-    }
+    scalars = [k for k in ("cd", "kb", "kbd") if k in physics]
+    params = [f"ks.{g}" for g in physics["ks"]] + [f"kd.{g}" for g in physics["kd"]] + scalars
+    init = {f"{k}.{g}": factor * v for k in ("ks", "kd") for g, v in physics[k].items()}
+    init |= {k: factor * physics[k] for k in scalars}
     clock = time.perf_counter()
     result = js.fit(scene, target, params, init=init)
     fit_s = time.perf_counter() - clock

@@ -97,6 +97,31 @@ def test_the_toml_text_reads_back_as_the_same_scene(tmp_path):
         np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
 
 
+def test_the_bending_option_replaces_bend_springs_by_triples_bent_like_the_arc(tmp_path):
+    """On a circle of radius 0.5 m, particles h apart turn by about h / 0.5 at each: the rest |kappa|
+    = 2 tan(theta / 2) of every triple is that of the rest shape, about h / 0.5, and the TOML text
+    keeps the triples."""
+    recs = arc_recordings(noise=0.0)
+    cable = js.cable_scene(recs, driven=(0, -1), subdivide=4, bending=True, values={"kb": 0.02, "kbd": 3e-4})
+    assert [g["name"] for g in cable.scene["springs"]] == ["stretch"]
+    assert cable.scene["bending"]["triples"] == [[i - 1, i, i + 1] for i in range(1, 20)]
+    assert cable.scene["physics"]["kb"] == 0.02 and cable.scene["physics"]["kbd"] == 3e-4
+    scene = js.scene_from_dict(cable.scene)
+    x = np.array(cable.scene["particles"]["x"])
+    h = np.linalg.norm(np.diff(x, axis=0), axis=-1)
+    e1, e2 = np.diff(x, axis=0)[:-1], np.diff(x, axis=0)[1:]
+    turning = np.arccos(np.sum(e1 * e2, axis=1) / (h[:-1] * h[1:]))
+    rest = np.asarray(scene.model.rest_curvature)
+    np.testing.assert_allclose(rest, 2 * np.tan(turning / 2), rtol=1e-9)
+    np.testing.assert_allclose(rest, (h[:-1] + h[1:]) / 2 / 0.5, rtol=0.05)  # curvature 1 / R times the step
+    path = tmp_path / "cable.toml"
+    path.write_text(cable.toml())
+    again = js.load_scene(path)
+    np.testing.assert_array_equal(np.asarray(again.model.bends), np.asarray(scene.model.bends))
+    np.testing.assert_allclose(np.asarray(again.model.rest_curvature), np.asarray(scene.model.rest_curvature))
+    assert float(again.params.kb) == 0.02 and float(again.params.kbd) == 3e-4
+
+
 @pytest.mark.parametrize(
     "kwargs, words",
     [

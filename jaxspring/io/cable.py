@@ -46,7 +46,8 @@ class CableModel:
         lines += [f"integrator = {_q(s['integrator'])}", "", "[physics]"]
         for key in ("ks", "kd"):
             lines.append(f"{key} = {{ " + ", ".join(f"{g} = {v!r}" for g, v in p[key].items()) + " }")
-        lines += [f"cd = {p['cd']!r}", f"gravity = {list(p['gravity'])!r}", "", "[particles]"]
+        lines += [f"cd = {p['cd']!r}"] + [f"{key} = {p[key]!r}" for key in ("kb", "kbd") if key in p]
+        lines += [f"gravity = {list(p['gravity'])!r}", "", "[particles]"]
         part = s["particles"]
         lines.append("x = [" + ", ".join("[" + ", ".join(f"{c!r}" for c in x) + "]" for x in part["x"]) + "]")
         lines += ["mass = [" + ", ".join(f"{m!r}" for m in part["mass"]) + "]", "drag = true"]
@@ -54,6 +55,9 @@ class CableModel:
             lines += ["", "[[springs]]", f"name = {_q(group['name'])}"]
             lines.append("pairs = [" + ", ".join(f"[{i}, {j}]" for i, j in group["pairs"]) + "]")
             lines.append("rest_length = [" + ", ".join(f"{r!r}" for r in group["rest_length"]) + "]")
+        if "bending" in s:
+            triples = ", ".join(f"[{a}, {b}, {c}]" for a, b, c in s["bending"]["triples"])
+            lines += ["", "[bending]", f"triples = [{triples}]"]
         return "\n".join(lines) + "\n"
 
 
@@ -64,6 +68,7 @@ def cable_scene(
     groups: int = 1,
     mass: float = 1.0,
     rest: str = "data",
+    bending: bool = False,
     reference: tuple = (0, 0),
     values=None,
     dt: float = 1e-3,
@@ -79,9 +84,13 @@ def cable_scene(
         mass: the cable's mass [kg], spread over the particles by their share of the arc length.
         rest: "data" (arc lengths and curvature from the recordings) or "straight" (a straight
             cable as long as the median marker distances).
+        bending: bend the cable with the bending term (a `[bending]` table: every three
+            neighbouring particles, one stiffness kb and damping kbd, rest curvature from the
+            rest shape) instead of bend springs (i, i + 2).
         reference: (recording, frame) whose marker shape gives the rest curvature.
-        values: {"ks": ..., "kd": ..., "cd": ...} starting values (per length: ks and kd are
-            given for a 1 m spring and scaled by 1 / rest length); defaults suit a 1 m cable.
+        values: {"ks": ..., "kd": ..., "cd": ..., "kb": ..., "kbd": ...} starting values (per
+            length: ks and kd are given for a 1 m spring and scaled by 1 / rest length; kb [N m^2]
+            and kbd [N m^2 s] are a rod's, independent of the particles); defaults suit a 1 m cable.
         dt: the scene's time step [s].
 
     Example:
@@ -124,12 +133,12 @@ def cable_scene(
     share[:-1] += segment / 2
     share[1:] += segment / 2
     particle_mass = mass * share / share.sum()
-    values = {"ks": 400.0, "kd": 0.3, "cd": 2e-3, **(values or {})}
+    values = {"ks": 400.0, "kd": 0.3, "cd": 2e-3, "kb": 0.01, "kbd": 1e-4, **(values or {})}
     low = [markers[d] for d in driven_markers if d < count / 2]
     high = [markers[d] for d in driven_markers if d >= count / 2]
     first, last = (max(low) if low else 0), (min(high) if high else n - 1)
     springs, ks, kd = [], {}, {}
-    for family, gap in (("stretch", 1), ("bend", 2)):
+    for family, gap in (("stretch", 1),) if bending else (("stretch", 1), ("bend", 2)):
         pairs = np.stack([np.arange(n - gap), np.arange(gap, n)], axis=1)
         group = _group_of((pairs[:, 0] + pairs[:, 1]) / 2, first, last, int(groups))
         for g in range(int(groups)):
@@ -143,18 +152,24 @@ def cable_scene(
             ks[label] = float(f"{scale * values['ks'] / rest_length.mean():.6g}")
             kd[label] = float(f"{scale * values['kd'] / rest_length.mean():.6g}")
             springs.append({"name": label, "pairs": chosen.tolist(), "rest_length": rest_length.tolist()})
+    physics = {"ks": ks, "kd": kd, "cd": float(values["cd"]), "gravity": [0.0, 0.0, -9.81]}
+    if bending:
+        physics.update(kb=float(values["kb"]), kbd=float(values["kbd"]))
     scene = {
         "name": name,
         "description": (
             f"A cable of {n} particles through {count} markers ({subdivide} per marker interval), "
-            f"{'rest shape from the recordings' if rest == 'data' else 'straight at rest'}, {groups} segment group(s)."
+            f"{'rest shape from the recordings' if rest == 'data' else 'straight at rest'}, {groups} segment group(s), "
+            f"{'the bending term' if bending else 'bend springs'}."
         ),
         "dt": float(dt),
         "integrator": "semi_implicit_euler",
-        "physics": {"ks": ks, "kd": kd, "cd": float(values["cd"]), "gravity": [0.0, 0.0, -9.81]},
+        "physics": physics,
         "particles": {"x": x.tolist(), "mass": particle_mass.tolist(), "drag": True},
         "springs": springs,
     }
+    if bending:  # rest curvature: the scene's default, that of its rest shape x
+        scene["bending"] = {"triples": [[i - 1, i, i + 1] for i in range(1, n - 1)]}
     return CableModel(scene=scene, markers=markers.tolist(), driven=[int(markers[k]) for k in driven_markers])
 
 

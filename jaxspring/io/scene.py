@@ -90,6 +90,8 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     ks = physics.take("ks", schema.grouped_non_negative_values)
     kd = physics.take("kd", schema.grouped_non_negative_values)
     cd = physics.take("cd", schema.non_negative_values)
+    kb = physics.take("kb", schema.non_negative_values)
+    kbd = physics.take("kbd", schema.non_negative_values)
     gravity = physics.take("gravity", schema.vector3, default=DEFAULT_GRAVITY)
     physics.finish()
 
@@ -106,6 +108,7 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
     lattice = top.table("lattice")
     particles = top.table("particles")
     springs_tables = top.tables("springs")
+    bending = top.table("bending")
     initial = top.table("initial")
     top.finish()
     if (lattice is None) == (particles is None):
@@ -122,6 +125,27 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
         lattice_shape = topology.pop("lattice_shape")
     else:
         topology = _explicit_topology(particles, springs_tables, has_drag=cd is not None)
+    bends, rest_curvature = None, None
+    if bending is not None:
+        if lattice is not None:
+            raise InputError("bending", "[bending] is only for [particles] scenes", "remove it, or use [particles]")
+        bends = np.asarray(bending.take("triples", schema.index_triples, required=True), dtype=np.int64).reshape(-1, 3)
+        rest_curvature = bending.take("rest_curvature", schema.non_negative_values, default=None)
+        if rest_curvature is not None and np.ndim(rest_curvature) == 1 and len(rest_curvature) != bends.shape[0]:
+            raise InputError(
+                "bending.rest_curvature",
+                f"has {len(rest_curvature)} values for {bends.shape[0]} triples",
+                "give one per triple or one for all",
+            )
+        bending.finish()
+        if not bends.size:
+            raise InputError("bending.triples", "is empty", "list the bend triples, or remove [bending]")
+    for key, value in (("kb", kb), ("kbd", kbd)):
+        if (value is None) != (bends is None):
+            fix = f"set physics.{key}" if value is None else f"remove physics.{key}, or add a [bending] table"
+            raise InputError(
+                f"physics.{key}", "missing: the scene has [bending]" if value is None else "set without [bending]", fix
+            )
 
     x = topology.pop("positions")
     v = topology.pop("velocities")
@@ -155,12 +179,16 @@ def scene_from_dict(document: dict, default_name: str = "scene") -> Scene:
             lattice_shape=lattice_shape,
             spring_groups=topology["spring_groups"],
             backend=backend,
+            bends=bends,
+            rest_curvature=rest_curvature,
         )
     except InputError as exc:  # name the table the bad value came from
         table = "lattice" if lattice is not None else "particles"
-        prefix = {"springs": "springs", "rest_length": "springs"}.get(exc.field, table)
+        if exc.field == "bends":  # the file calls them triples
+            exc = InputError("bending.triples", exc.problem, exc.fix)
+        prefix = {"springs": "springs", "rest_length": "springs", "rest_curvature": "bending"}.get(exc.field, table)
         raise exc.within("", "" if exc.field in ("dt", "integrator", "backend") else prefix) from None
-    values = dict(ks=ks, kd=kd, cd=cd, gravity=gravity if gravity_on else None)
+    values = dict(ks=ks, kd=kd, cd=cd, kb=kb, kbd=kbd, gravity=gravity if gravity_on else None)
     values.update(ground_values or {})
     params = check_params(model, Params(**{k: _array(v) for k, v in values.items() if v is not None}))
 

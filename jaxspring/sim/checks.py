@@ -60,6 +60,8 @@ def _check_value(model: Model, name: str, value, per, count=None):
     elif per == "spring":
         count = model.spring_count if count is None else count
         allowed[(count,)] = f"one value per spring ({count})"
+    elif per == "bend":
+        allowed[(model.bend_count,)] = f"one value per bend triple ({model.bend_count})"
     elif per == "particle":
         allowed[(model.particle_count,)] = f"one value per particle ({model.particle_count})"
     if value.shape not in allowed:

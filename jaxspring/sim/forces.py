@@ -207,14 +207,64 @@ class Ground:
             return 0.5 * jnp.sum(params.kg * depth**2)
 
 
+def bend_curvature(x: jax.Array, bends: jax.Array) -> jax.Array:
+    """Discrete curvature binormal of every bend triple (a, b, c), shape (B, 3).
+
+    With e1 = x_b - x_a and e2 = x_c - x_b, kappa = 2 e1 x e2 / (|e1| |e2| + e1 . e2): it is
+    normal to the plane of the bend and |kappa| = 2 tan(theta / 2) for the turning angle
+    theta at b (about theta for small bends; the bend's curvature times its length). A
+    degenerate triple (a zero-length edge, or folded straight back) has kappa = 0.
+    """
+    a, b, c = bends[:, 0], bends[:, 1], bends[:, 2]
+    e1, e2 = x[b] - x[a], x[c] - x[b]
+    denominator = safe_norm(e1) * safe_norm(e2) + jnp.sum(e1 * e2, axis=-1)
+    usable = denominator > 0
+    return 2.0 * jnp.cross(e1, e2) * jnp.where(usable, 1.0 / jnp.where(usable, denominator, 1.0), 0.0)[:, None]
+
+
+@dataclasses.dataclass(frozen=True)
+class Bending:
+    """Bending of a chain at its bend triples (a, b, c), with bending damping (docs/physics.md).
+
+    With kappa the curvature binormal of the triple (`bend_curvature`), kappa_0 its rest
+    value `model.rest_curvature` (a magnitude: the rest bend's direction is free) and l the
+    triple's length `model.bend_length` (the mean of its two edges at rest), the energy is
+    E = kb / (2 l) (|kappa| - kappa_0)^2, a rod of bending stiffness EI = kb, and the
+    damping force is the Rayleigh one on the rate of the same strain,
+    f = -kbd / l (d|kappa|/dt) grad |kappa| (a rigid motion feels none). Needs params
+    `kb` [N m^2] and `kbd` [N m^2 s], scalars or shape (B,).
+    """
+
+    name = "bending"
+
+    def force(self, model, params, x, v):
+        with jax.named_scope(self.name):
+            elastic = -jax.grad(self.energy, argnums=2)(model, params, x)
+            bend = lambda y: safe_norm(bend_curvature(y, model.bends))  # noqa: E731
+            _, rate = jax.jvp(bend, (x,), (v,))
+            _, pull_back = jax.vjp(bend, x)
+            (damping,) = pull_back(-jnp.asarray(params.kbd) / model.bend_length * rate)
+            return elastic + damping
+
+    def energy(self, model, params, x):
+        with jax.named_scope(self.name):
+            kappa = bend_curvature(x, model.bends)
+            # (|kappa| - kappa_0)^2 expanded: where kappa_0 = 0 it is |kappa|^2, smooth through a
+            # straight triple, so the force's linearisation there (stability, Gauss-Newton) is right
+            k0 = model.rest_curvature
+            strain = jnp.sum(kappa**2, axis=-1) - 2.0 * k0 * safe_norm(kappa) + k0**2
+            return 0.5 * jnp.sum(jnp.asarray(params.kb) / model.bend_length * strain)
+
+
 # Which parameters each term reads; used to validate a Params against a Model.
 TERM_PARAMETERS = {
     "springs": ("ks", "kd"),
     "drag": ("cd",),
     "gravity": ("gravity",),
     "ground": ("kg", "kgd", "ground_height"),
+    "bending": ("kb", "kbd"),
 }
-TERMS = {term.name: term for term in (Springs(), Drag(), Gravity(), Ground())}
+TERMS = {term.name: term for term in (Springs(), Drag(), Gravity(), Ground(), Bending())}
 
 
 def register_term(term, parameters: tuple = ()) -> None:

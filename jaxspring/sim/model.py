@@ -28,6 +28,9 @@ class Model:
         mass: particle masses [kg], shape (N,).
         pinned: particles that never move, bool, shape (N,).
         drag: particles that feel air resistance, bool, shape (N,).
+        bends: bend triples (a, b, c), the chain bending at b, int32, shape (B, 3) (None: none).
+        bend_length: each triple's length l, the mean of its two edges at rest [m], shape (B,).
+        rest_curvature: each triple's rest |kappa| (see `forces.bend_curvature`), shape (B,).
         terms: names of the force terms, e.g. ("springs", "gravity") (static; see `TERMS`).
         integrator: the time integrator, an `Integrator` such as `SemiImplicitEuler()`
             (static; a name from `INTEGRATORS` is turned into its default instance).
@@ -50,6 +53,9 @@ class Model:
     mass: jax.Array
     pinned: jax.Array
     drag: jax.Array
+    bends: jax.Array | None = None
+    bend_length: jax.Array | None = None
+    rest_curvature: jax.Array | None = None
     terms: tuple = dataclasses.field(metadata=dict(static=True), default=())
     integrator: Integrator = dataclasses.field(metadata=dict(static=True), default=SemiImplicitEuler())
     dt: float = dataclasses.field(metadata=dict(static=True), default=1e-3)
@@ -76,6 +82,10 @@ class Model:
     @property
     def spring_count(self) -> int:
         return int(self.springs.shape[0])
+
+    @property
+    def bend_count(self) -> int:
+        return 0 if self.bends is None else int(self.bends.shape[0])
 
     @property
     def force_terms(self) -> tuple:
@@ -183,6 +193,8 @@ def make_model(
     lattice_shape=None,
     spring_groups=None,
     backend: str = "auto",
+    bends=None,
+    rest_curvature=None,
 ) -> Model:
     """Build and validate a Model.
 
@@ -204,6 +216,10 @@ def make_model(
         backend: "auto" (default: the fastest stepper that runs the model), "jax" (pure JAX,
             needed for forward mode through a rollout) or "native" (the C++ kernels; "jax"
             with a notice if they are not built). See `jaxspring.steppers.select_stepper`.
+        bends: bend triples (a, b, c), shape (B, 3): adds the bending term (needs `positions`,
+            the rest shape, for each triple's length).
+        rest_curvature: each triple's rest |kappa|, shape (B,) or one for all; default: the
+            triples' curvature at `positions`.
 
     Example:
         >>> model = make_model([[0, 1]], mass=[1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]],
@@ -246,9 +262,12 @@ def make_model(
     integrator = as_integrator(integrator)
     if not (np.isfinite(dt) and dt > 0):
         raise InputError("dt", f"must be a finite number > 0, got {dt}", "set a positive time step")
+    bend_arrays = _bend_arrays(bends, rest_curvature, positions, count)
     terms = []
     if springs_np.shape[0]:
         terms.append("springs")
+    if bend_arrays:
+        terms.append("bending")
     if drag_np.any():
         terms.append("drag")
     if gravity:
@@ -267,6 +286,42 @@ def make_model(
         lattice=lattice_layout(springs_np, lattice_shape, count),
         spring_groups=check_groups(spring_groups, springs_np.shape[0]),
         backend=check_backend(backend),
+        **bend_arrays,
+    )
+
+
+def _bend_arrays(bends, rest_curvature, positions, count: int) -> dict:
+    """The bending fields of a Model (empty without bend triples), checked."""
+    if bends is None or np.size(bends) == 0:
+        if rest_curvature is not None:
+            raise InputError("rest_curvature", "given without bend triples", "give `bends` too, or remove it")
+        return {}
+    triples = particle_indices("bends", bends, count, "fix the bend triple's particles", shape=(-1, 3))
+    repeats = (triples[:, 0] == triples[:, 1]) | (triples[:, 1] == triples[:, 2]) | (triples[:, 0] == triples[:, 2])
+    if repeats.any():
+        i = int(np.argmax(repeats))
+        raise InputError("bends", f"triple {i} repeats a particle", "give three different particles")
+    if positions is None:
+        raise InputError("bends", "needs the rest positions for the triples' lengths", "pass `positions`")
+    e1 = positions[triples[:, 1]] - positions[triples[:, 0]]
+    e2 = positions[triples[:, 2]] - positions[triples[:, 1]]
+    length = 0.5 * (np.linalg.norm(e1, axis=-1) + np.linalg.norm(e2, axis=-1))
+    if np.any(length <= 0):
+        i = int(np.argmin(length))
+        raise InputError("bends", f"triple {i} has zero length at rest", "move its particles apart")
+    if rest_curvature is None:
+        denominator = np.linalg.norm(e1, axis=-1) * np.linalg.norm(e2, axis=-1) + np.sum(e1 * e2, axis=-1)
+        cross = np.linalg.norm(np.cross(e1, e2), axis=-1)
+        curvature = np.where(denominator > 0, 2 * cross / np.where(denominator > 0, denominator, 1.0), 0.0)
+    else:
+        curvature = np.broadcast_to(np.asarray(rest_curvature, dtype=float), (triples.shape[0],)).copy()
+    check_finite("rest_curvature", curvature)
+    if np.any(curvature < 0):
+        raise InputError("rest_curvature", "must be >= 0 (it is a magnitude)", "give non-negative values")
+    return dict(
+        bends=jnp.asarray(triples, dtype=jnp.int32),
+        bend_length=jnp.asarray(length, dtype=float),
+        rest_curvature=jnp.asarray(curvature, dtype=float),
     )
 
 

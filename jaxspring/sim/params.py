@@ -18,9 +18,11 @@ PARAMETER_INFO = {
     "kgd": ("N s/m", "ground penalty damping", "particle"),
     "ground_height": ("m", "height h of the ground plane y = h", None),
     "gravity": ("m/s^2", "gravitational acceleration vector", None),
+    "kb": ("N m^2", "bending stiffness (EI) of the bend triples", "bend"),
+    "kbd": ("N m^2 s", "bending damping of the bend triples", "bend"),
 }
 # Parameters that must be strictly positive for a log-space fit and >= 0 physically.
-NON_NEGATIVE = ("ks", "kd", "cd", "kg", "kgd")
+NON_NEGATIVE = ("ks", "kd", "cd", "kg", "kgd", "kb", "kbd")
 # Parameters that may be given per spring group, {group name: value}.
 PER_GROUP = ("ks", "kd")
 
@@ -55,6 +57,8 @@ class Params:
         kgd: ground penalty damping [N s/m].
         ground_height: height h of the ground plane y = h [m].
         gravity: gravitational acceleration [m/s^2], shape (3,).
+        kb: bending stiffness EI of the bend triples [N m^2], a scalar or shape (B,).
+        kbd: bending damping of the bend triples [N m^2 s], a scalar or shape (B,).
 
     Example:
         >>> p = Params(ks=1000.0, kd=5.0, cd=0.05, gravity=[0.0, -9.81, 0.0])
@@ -69,6 +73,8 @@ class Params:
     kgd: jax.Array | None = None
     ground_height: jax.Array | None = None
     gravity: jax.Array | None = None
+    kb: jax.Array | None = None
+    kbd: jax.Array | None = None
 
     def __post_init__(self):
         # Accept Python floats and lists; leave tracers, arrays and ints alone (so a
