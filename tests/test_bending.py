@@ -85,7 +85,7 @@ def test_damping_force_is_rayleigh_on_the_rate_of_the_bend():
     force = np.asarray(TERMS["bending"].force(scene.model, params, jnp.asarray(x), jnp.asarray(v)))
     expected = np.zeros_like(x)
     for (a, b, c), kbd in zip(TRIPLES, KBD):
-        gradient = _central(lambda y: np.linalg.norm(_numpy_binormal(y, a, b, c)), x)  # (N * 3,)
+        gradient = _central(lambda y, t=(a, b, c): np.linalg.norm(_numpy_binormal(y, *t)), x)  # (N * 3,)
         rate = gradient @ v.reshape(-1)  # d|kappa|/dt
         length = 0.5 * (np.linalg.norm(X[b] - X[a]) + np.linalg.norm(X[c] - X[b]))
         expected -= (kbd / length * rate * gradient).reshape(x.shape)
