@@ -34,12 +34,16 @@ VARIANTS = {  # name: (description, cable_scene keyword arguments)
     "cable2": ("cable, 2 particles per marker interval, straight at rest", dict(subdivide=2, rest="straight")),
     "cable2_rest": ("cable, 2 per interval, rest shape from data", dict(subdivide=2, rest="data")),
     "rope_bending": (
+        "rope, a particle per marker, straight at rest, bending term",
+        dict(subdivide=1, rest="straight", bending=True),
+    ),
+    "rope_bending_rest": (
         "rope, a particle per marker, rest shape from data, bending term",
         dict(subdivide=1, rest="data", bending=True),
     ),
     "cable2_bending": (
-        "cable, 2 per interval, rest shape from data, bending term",
-        dict(subdivide=2, rest="data", bending=True),
+        "cable, 2 per interval, straight, bending term, dt 0.5 ms",
+        dict(subdivide=2, rest="straight", bending=True, dt=5e-4),
     ),
     "cable3_groups": (
         "cable, 3 per interval, straight, 3 segment groups",
@@ -49,24 +53,24 @@ VARIANTS = {  # name: (description, cable_scene keyword arguments)
 START, SMOOTH, MASS, DRIVEN = 5, 5, 0.2, (0, 1, -2, -1)
 
 
-def load(folder: Path, part: str, frames: int):
+def load(folder: Path, part: str, frames: int, count: int | None = None):
     import jaxspring as js
 
     out = []
-    for path in sorted((folder / part).glob("*.h5")):
+    for path in sorted((folder / part).glob("*.h5"))[:count]:
         r = js.load_recording(path)
         out.append(js.Recording(t=r.t[:frames], x=r.x[:frames], markers=r.markers))
     return out
 
 
-def run_variant(folder: Path, name: str, frames: int, factor: float) -> dict:
+def run_variant(folder: Path, name: str, frames: int, factor: float, train: int, held_out: int) -> dict:
     """Fit one variant (in this process) and predict the held-out recordings; the numbers as a dict."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jaxspring as js
 
-    train, held = load(folder, "train", frames), load(folder, "held_out", frames)
+    train, held = load(folder, "train", frames, train), load(folder, "held_out", frames, held_out)
     cable = js.cable_scene(train, driven=DRIVEN, mass=MASS, reference=(0, START), **VARIANTS[name][1])
     scene = js.scene_from_dict(cable.scene)
     target = js.recording_target(scene, train, markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
@@ -100,9 +104,10 @@ def run_variant(folder: Path, name: str, frames: int, factor: float) -> dict:
     )
 
 
-def child(folder: Path, name: str, frames: int, factor: float) -> dict:
+def child(folder: Path, name: str, frames: int, factor: float, train: int, held_out: int) -> dict:
     """`run_variant` in a fresh process (its own wall time and peak memory)."""
     argv = [sys.executable, __file__, "--data", str(folder), "--frames", str(frames), "--child", name]
+    argv += ["--train", str(train), "--held-out", str(held_out)]
     argv += ["--factor", repr(factor)]
     done = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     if done.returncode:
@@ -140,12 +145,13 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=500)
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     parser.add_argument("--starts", help="start sweep: factors on every start value (e.g. 0.1,1,10), best variant")
+    parser.add_argument("--sweep-variant", help="the start sweep's variant (default: the best of the table)")
     parser.add_argument("--out", help="results file (default benchmarks/results/cables_<train>x<frames>.md)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--factor", type=float, default=1.0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(run_variant(Path(args.data), args.child, args.frames, args.factor)))
+        print(json.dumps(run_variant(Path(args.data), args.child, args.frames, args.factor, args.train, args.held_out)))
         return
     folder = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="jaxspring-cables-"))
     if not (folder / "truth.json").exists():
@@ -163,12 +169,17 @@ def main(argv=None) -> None:
     )
     rows = []
     for name in names:
-        rows.append(child(folder, name, args.frames, 1.0))
+        rows.append(child(folder, name, args.frames, 1.0, args.train, args.held_out))
         print(json.dumps(rows[-1]), flush=True)
     lines = table(rows, title)
     if args.starts:
         best = min(rows, key=lambda r: r["coordinate"])
-        sweep = [child(folder, best["name"], args.frames, float(f)) for f in args.starts.split(",")]
+        if args.sweep_variant:
+            best = next(r for r in rows if r["name"] == args.sweep_variant)
+        sweep = []
+        for f in args.starts.split(","):
+            sweep.append(child(folder, best["name"], args.frames, float(f), args.train, args.held_out))
+            print(json.dumps(sweep[-1]), flush=True)
         top = min(r["coordinate"] for r in sweep)
         lines += [
             "",

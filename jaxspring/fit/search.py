@@ -6,8 +6,10 @@ whole-horizon misfit is shaped by it: from a start far off, a gradient fit can s
 dip, or hardly move at all. A short window (the first eighth of every recording) is smooth
 over a wide range of values and cheap, so `starts` points spread in log space around the
 start values (a Latin hypercube, `start_spread` times either way per value, the given start
-among them) are fitted there at once as one batch; the best is fitted again over half the
-recordings; and the whole-horizon misfit decides between that point and the given start.
+among them) are scored there at once as one batch, the `SEARCH_FITTED` best (a start the
+time step cannot simulate scores infinity) are fitted there, the best of them again over a
+quarter of the recordings; and the whole-horizon misfit decides between that point and the
+given start.
 The fit proper then starts from the winner (and ends on the best point it passes through).
 """
 
@@ -25,8 +27,10 @@ from .recording_loss import loss_function, target_data
 from .recordings import RecordingTarget
 from .settings import Stage
 
-SEARCH_ITERATIONS = 40
+SEARCH_ITERATIONS = 20
 """Iterations of each search window (the fit proper polishes afterwards)."""
+SEARCH_FITTED = 2
+"""Starts fitted on the short window: those whose misfit there is lowest before fitting."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +40,7 @@ class SearchReport:
     Attributes:
         starts: the start values tried, one dict per start (the given one first).
         window, lengthened: frames of the short and the lengthened window.
-        window_loss: each start's loss on the short window where its fit ended [m^2].
+        window_loss: each start's loss on the short window [m^2] (where its fit ended, for the fitted ones).
         best: index of the start whose short-window fit won.
         given_loss, found_loss: whole-horizon loss at the given start and at the point found.
         chosen: the values the fit proper started from; `used_search`: whether they are the found point.
@@ -112,15 +116,22 @@ def search_start(scene, target: RecordingTarget, names, init: dict, settings) ->
     clock = time.perf_counter()
     total = target.frame_count - 1
     short = max(8, math.ceil(total / 8))
-    lengthened = max(short, math.ceil(total / 2))
+    lengthened = max(short, math.ceil(total / 4))
     quick = dataclasses.replace(settings, strategy="direct", iterations=SEARCH_ITERATIONS, polish=False, starts=1)
     starts = latin_starts(init, int(settings.starts), float(settings.start_spread))
     plain = dataclasses.replace(target, fit_start=False, fit_driven=False)
-    results = fit_batch(scene, [window(plain, short)], names, starts, quick, identify=False)
-    window_loss = np.array([r.loss_history[-1] for r in results], dtype=float)
+    cut = window(plain, short)
+    score = jax.jit(jax.vmap(loss_function(scene, cut, names, Stage("direct", short)), in_axes=(0, None)))
+    logs = {n: jnp.log(jnp.stack([jnp.asarray(s[n], dtype=float) for s in starts])) for n in names}
+    window_loss = np.asarray(score(logs, target_data(cut)), dtype=float)
     window_loss = np.where(np.isfinite(window_loss), window_loss, np.inf)
-    best = int(np.argmin(window_loss))
-    found = {n: np.asarray(results[best].final[n]) for n in names}
+    chosen = [int(i) for i in np.argsort(window_loss, kind="stable")[:SEARCH_FITTED]]
+    results = fit_batch(scene, [cut], names, [starts[i] for i in chosen], quick, identify=False)
+    fitted_loss = np.array([r.loss_history[-1] for r in results], dtype=float)
+    fitted_loss = np.where(np.isfinite(fitted_loss), fitted_loss, np.inf)
+    window_loss[chosen] = np.minimum(window_loss[chosen], fitted_loss)
+    best = chosen[int(np.argmin(fitted_loss))]
+    found = {n: np.asarray(results[int(np.argmin(fitted_loss))].final[n]) for n in names}
     if lengthened > short:
         longer = fit_batch(scene, [window(plain, lengthened)], names, [found], quick, identify=False)[0]
         found = {n: np.asarray(v) for n, v in longer.final.items()}

@@ -2,7 +2,9 @@
 
 A tracked cable has a few markers; `cable_scene` threads a chain of particles through them
 (`subdivide` particle intervals between two neighbouring free markers), with stretch springs
-(i, i + 1) and bend springs (i, i + 2), so that the cable bends smoothly between markers
+(i, i + 1) and either bend springs (i, i + 2) or, with `bending=True`, the bending term on
+every three neighbours (a rod's stiffness kb and damping kbd on the turning angle, which
+leaves stretching to the stretch springs), so that the cable bends smoothly between markers
 instead of at them. The rest shape comes from the data, not a straight line: each marker
 interval's rest chord is the median over every seen frame of the markers' distance, and the
 shape within and across intervals (the natural curvature) is that of a reference frame,

@@ -222,6 +222,20 @@ def bend_curvature(x: jax.Array, bends: jax.Array) -> jax.Array:
     return 2.0 * jnp.cross(e1, e2) * jnp.where(usable, 1.0 / jnp.where(usable, denominator, 1.0), 0.0)[:, None]
 
 
+def _bend_geometry(x, bends):
+    """Per triple: e1, e2, kappa, 2 / D and the gradients of D = |e1| |e2| + e1 . e2 by e1 and e2."""
+    a, b, c = bends[:, 0], bends[:, 1], bends[:, 2]
+    e1, e2 = x[b] - x[a], x[c] - x[b]
+    n1, n2 = safe_norm(e1, keepdims=True), safe_norm(e2, keepdims=True)
+    denominator = n1 * n2 + jnp.sum(e1 * e2, axis=-1, keepdims=True)
+    usable = (denominator > 0) & (n1 > 0) & (n2 > 0)
+    two_over = jnp.where(usable, 2.0 / jnp.where(usable, denominator, 1.0), 0.0)
+    ratio = jnp.where(usable, n2 / jnp.where(usable, n1, 1.0), 0.0)  # |e2| / |e1|
+    d1 = ratio * e1 + e2  # dD / de1
+    d2 = jnp.where(usable, 1.0 / jnp.where(usable, ratio, 1.0), 0.0) * e2 + e1  # dD / de2
+    return e1, e2, two_over * jnp.cross(e1, e2), two_over, d1, d2
+
+
 @dataclasses.dataclass(frozen=True)
 class Bending:
     """Bending of a chain at its bend triples (a, b, c), with bending damping (docs/physics.md).
@@ -239,12 +253,26 @@ class Bending:
 
     def force(self, model, params, x, v):
         with jax.named_scope(self.name):
-            elastic = -jax.grad(self.energy, argnums=2)(model, params, x)
-            bend = lambda y: safe_norm(bend_curvature(y, model.bends))  # noqa: E731
-            _, rate = jax.jvp(bend, (x,), (v,))
-            _, pull_back = jax.vjp(bend, x)
-            (damping,) = pull_back(-jnp.asarray(params.kbd) / model.bend_length * rate)
-            return elastic + damping
+            # kappa = 2 w / D, w = e1 x e2: for a cotangent c, d(c . kappa) = (2 / D) [de1 . (e2 x c)
+            # + de2 . (c x e1)] - (c . kappa / D) dD; the force is f = -J^T c (J = d kappa / dx) with
+            # c = kb / l (kappa - kappa_0 u) + kbd / l (u . J v) u, u = kappa / |kappa| (0 at 0)
+            e1, e2, kappa, two_over, d1, d2 = _bend_geometry(x, model.bends)
+            a, b, c = model.bends[:, 0], model.bends[:, 1], model.bends[:, 2]
+            u1, u2 = v[b] - v[a], v[c] - v[b]
+            rate = two_over * (jnp.cross(u1, e2) + jnp.cross(e1, u2))
+            rate = rate - 0.5 * two_over * kappa * (jnp.sum(d1 * u1, -1, keepdims=True) + jnp.sum(d2 * u2, -1, keepdims=True))
+            size = safe_norm(kappa, keepdims=True)
+            nonzero = size > 0
+            unit = kappa * jnp.where(nonzero, 1.0 / jnp.where(nonzero, size, 1.0), 0.0)
+            kb = jnp.asarray(params.kb)[..., None] / model.bend_length[:, None]
+            kbd = jnp.asarray(params.kbd)[..., None] / model.bend_length[:, None]
+            along = jnp.sum(unit * rate, axis=-1, keepdims=True)
+            cot = kb * (kappa - model.rest_curvature[:, None] * unit) + kbd * along * unit
+            scale = 0.5 * two_over * jnp.sum(cot * kappa, axis=-1, keepdims=True)
+            g1 = two_over * jnp.cross(e2, cot) - scale * d1  # d(c . kappa) / de1
+            g2 = two_over * jnp.cross(cot, e1) - scale * d2
+            force = jnp.zeros_like(x).at[a].add(g1).at[b].add(g2 - g1).at[c].add(-g2)
+            return force
 
     def energy(self, model, params, x):
         with jax.named_scope(self.name):
