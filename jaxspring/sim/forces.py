@@ -260,7 +260,9 @@ class Bending:
             a, b, c = model.bends[:, 0], model.bends[:, 1], model.bends[:, 2]
             u1, u2 = v[b] - v[a], v[c] - v[b]
             rate = two_over * (jnp.cross(u1, e2) + jnp.cross(e1, u2))
-            rate = rate - 0.5 * two_over * kappa * (jnp.sum(d1 * u1, -1, keepdims=True) + jnp.sum(d2 * u2, -1, keepdims=True))
+            rate = rate - 0.5 * two_over * kappa * (
+                jnp.sum(d1 * u1, -1, keepdims=True) + jnp.sum(d2 * u2, -1, keepdims=True)
+            )
             size = safe_norm(kappa, keepdims=True)
             nonzero = size > 0
             unit = kappa * jnp.where(nonzero, 1.0 / jnp.where(nonzero, size, 1.0), 0.0)
