@@ -559,3 +559,20 @@ def test_the_best_stage_wins_on_the_final_loss():
     theta, loss = best_of_stages(progress, ("ks",), lambda th, data: th["ks"] ** 2, None)
     np.testing.assert_allclose(theta["ks"], [0.1], rtol=1e-12)
     np.testing.assert_allclose(loss, [0.01], rtol=1e-12)
+
+
+def test_identifiability_where_the_simulation_overflows_warns_instead_of_failing():
+    """A fit can end where the time step only just simulates: the derivatives overflow. The report
+    then has infinite standard errors and says why, rather than raising from the eigensolver."""
+    scene = js.scene_from_dict(
+        {
+            "dt": 0.5,  # far past the stable step of ks = 1e6 on 1 kg: the rollout overflows
+            "physics": {"ks": 1e6, "kd": 0.0, "gravity": [0.0, 0.0, 0.0]},
+            "particles": {"x": [[0, 0, 0], [1.5, 0, 0]], "pinned": [0]},
+            "springs": {"pairs": [[0, 1]], "rest_length": [1.0]},
+        }
+    )
+    obs = js.synthetic_observations(scene.with_values({"ks": 1e-3}), {"ks": 1e-3}, steps=400, save_every=20)
+    report = js.identifiability(scene, obs, ["ks"], {"ks": 1e6})
+    assert np.isinf(float(report.standard_error["ks"]))
+    assert any("not finite" in w for w in report.warnings), report.warnings

@@ -174,8 +174,15 @@ def identifiability(
         column = np.sqrt(np.maximum(np.diag(normal), 0.0))
     labels = _labels(theta)
     warnings = []
+    finite = bool(np.isfinite(normal).all() and np.isfinite(column).all() and np.isfinite(sigma2))
+    if not finite:  # e.g. the fit ended where the time step only just simulates: the derivatives overflow
+        warnings.append(
+            "the derivatives of the simulation are not finite at the fitted values: no standard errors "
+            "(try a smaller dt, or other initial values)"
+        )
+        normal, column, whole = np.zeros_like(normal), np.zeros_like(column), False
     dead = column <= 1e-10 * max(float(column.max()), 1e-300)
-    for i in np.nonzero(dead)[0]:
+    for i in np.nonzero(dead)[0] if finite else ():
         warnings.append(f"{labels[i]} is not identifiable: the observed motion does not depend on it")
     # invert on unit-norm columns (so a parameter with a tiny effect is not cut off by a
     # round-off threshold), then undo the scaling; directions the data cannot see get
