@@ -215,11 +215,7 @@ def bend_curvature(x: jax.Array, bends: jax.Array) -> jax.Array:
     theta at b (about theta for small bends; the bend's curvature times its length). A
     degenerate triple (a zero-length edge, or folded straight back) has kappa = 0.
     """
-    a, b, c = bends[:, 0], bends[:, 1], bends[:, 2]
-    e1, e2 = x[b] - x[a], x[c] - x[b]
-    denominator = safe_norm(e1) * safe_norm(e2) + jnp.sum(e1 * e2, axis=-1)
-    usable = denominator > 0
-    return 2.0 * jnp.cross(e1, e2) * jnp.where(usable, 1.0 / jnp.where(usable, denominator, 1.0), 0.0)[:, None]
+    return _bend_geometry(x, bends)[2]
 
 
 def _bend_geometry(x, bends):

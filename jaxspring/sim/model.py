@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import InputError
 from ..steppers import Stepper, check_backend, select_stepper
 from .checks import check_finite, check_groups, flag_mask, particle_indices
-from .forces import TERM_PARAMETERS, TERMS
+from .forces import TERM_PARAMETERS, TERMS, bend_curvature, safe_norm
 from .integrators import Integrator, SemiImplicitEuler, as_integrator
 from .params import PER_GROUP, Params, split_name
 from .state import State
@@ -310,9 +310,7 @@ def _bend_arrays(bends, rest_curvature, positions, count: int) -> dict:
         i = int(np.argmin(length))
         raise InputError("bends", f"triple {i} has zero length at rest", "move its particles apart")
     if rest_curvature is None:
-        denominator = np.linalg.norm(e1, axis=-1) * np.linalg.norm(e2, axis=-1) + np.sum(e1 * e2, axis=-1)
-        cross = np.linalg.norm(np.cross(e1, e2), axis=-1)
-        curvature = np.where(denominator > 0, 2 * cross / np.where(denominator > 0, denominator, 1.0), 0.0)
+        curvature = np.asarray(safe_norm(bend_curvature(jnp.asarray(positions), jnp.asarray(triples))))
     else:
         curvature = np.broadcast_to(np.asarray(rest_curvature, dtype=float), (triples.shape[0],)).copy()
     check_finite("rest_curvature", curvature)
