@@ -26,6 +26,7 @@ def native_extensions():
                     "lattice_reverse.cc",
                     "lattice_groups.cc",
                     "lattice_ffi.cc",
+                    "bending.cc",
                 )
             ],
             depends=[

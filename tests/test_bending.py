@@ -2,6 +2,7 @@
 the turning angle with finite differences in float64, the internal-force laws, and scene-file errors."""
 
 import math
+import os
 
 import jax
 import jax.numpy as jnp
@@ -175,3 +176,60 @@ def test_the_stability_estimate_of_a_straight_chain_sees_the_bending_stiffness()
     estimate = js.estimate_stability(scene.model, scene.params, scene.state, iterations=400)
     bound = math.sqrt(16 * kb / (length**3 * mass))
     assert 0.97 * bound < estimate.omega_max <= 1.0001 * bound
+
+
+def _native_or_skip():
+    from jaxspring.steppers import native_kernels
+
+    if not native_kernels.available():
+        if os.environ.get("CI"):
+            raise AssertionError("the native kernel was not built by the install")
+        pytest.skip("native kernel not built here")
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_the_native_bending_kernel_matches_finite_differences_and_the_jax_force(dtype):
+    """The C++ kernel (the default stepper of a bending model on CPU): its force equals the JAX
+    term's, and its reverse pass (dual numbers through the curvature's Hessians) the JAX
+    term's VJP and central differences of its own force, batched with vmap too."""
+    _native_or_skip()
+    scene = js.scene_from_dict(_doc())
+    native, plain = scene.model, scene.model.replace(backend="jax")
+    assert native.stepper.name == "native_springs" and plain.stepper.name == "generic"
+    x = jnp.asarray(X * 1.3 + RNG.normal(0.0, 0.02, X.shape), dtype)
+    v = jnp.asarray(RNG.normal(0.0, 0.5, X.shape), dtype)
+    ct = jnp.asarray(RNG.normal(0.0, 1.0, X.shape), dtype)
+    params = scene.params
+
+    def force(model):
+        return lambda x, v, kb, kbd: model.force(params.replace(kb=kb, kbd=kbd), x, v)
+
+    tol = 1e-12 if dtype == jnp.float64 else 2e-5
+    args = (x, v, jnp.asarray(KB, dtype), jnp.asarray(KBD, dtype))
+    reference = np.asarray(force(plain)(*args))
+    assert np.abs(np.asarray(force(native)(*args)) - reference).max() < tol * np.abs(reference).max()
+    mine = jax.vjp(force(native), *args)[1](ct)
+    theirs = jax.vjp(force(plain), *args)[1](ct)
+    for a, b in zip(mine, theirs):
+        assert np.abs(np.asarray(a) - np.asarray(b)).max() < 10 * tol * np.abs(np.asarray(b)).max()
+    if dtype == jnp.float64:  # the kernel's VJP against its own force's central differences
+        for i, arg in enumerate(args):
+
+            def along(value, i=i):
+                moved = list(args)
+                moved[i] = jnp.asarray(value)
+                return float(jnp.sum(ct * force(native)(*moved)))
+
+            expected = _central(along, np.asarray(arg), h=1e-7)
+            assert np.asarray(mine[i]).ravel() == pytest.approx(expected, rel=1e-5, abs=1e-6 * np.abs(expected).max())
+    # a batch of states (vmap) and one scalar kb, kbd shared by every triple
+    xs = x[None] + jnp.asarray(RNG.normal(0.0, 0.01, (3,) + X.shape), dtype)
+    vs = v[None] * jnp.asarray([1.0, -0.5, 2.0], dtype)[:, None, None]
+
+    def batch(model):
+        return lambda xs, kb, kbd: jnp.sum(ct * jax.vmap(lambda x, v: force(model)(x, v, kb, kbd))(xs, vs))
+
+    scalars = (xs, jnp.asarray(0.02, dtype), jnp.asarray(1e-3, dtype))
+    mine, theirs = jax.grad(batch(native), (0, 1, 2))(*scalars), jax.grad(batch(plain), (0, 1, 2))(*scalars)
+    for a, b in zip(mine, theirs):
+        assert np.abs(np.asarray(a) - np.asarray(b)).max() < 10 * tol * np.abs(np.asarray(b)).max()

@@ -8,6 +8,9 @@ backward is native too:
 
 - `spring_force`: the spring forces of any topology in one pass over the springs,
   and the exact reverse-mode derivative in another (the native springs stepper's force).
+- `bending_force`: the bending term's forces at its bend triples, and their reverse-mode
+  derivative (`native/bending.cc`: forward-mode dual numbers through the curvature's
+  symmetric Hessians).
 - `lattice_advance`: whole semi-implicit Euler steps of a lattice scene (below; the native
   lattice stepper's `advance`).
 
@@ -48,6 +51,10 @@ _SYMBOLS = {
     "jaxspring_lattice_f64": "JaxspringLatticeF64",
     "jaxspring_lattice_backward_f32": "JaxspringLatticeBackwardF32",
     "jaxspring_lattice_backward_f64": "JaxspringLatticeBackwardF64",
+    "jaxspring_bending_f32": "JaxspringBendingF32",
+    "jaxspring_bending_f64": "JaxspringBendingF64",
+    "jaxspring_bending_backward_f32": "JaxspringBendingBackwardF32",
+    "jaxspring_bending_backward_f64": "JaxspringBendingBackwardF64",
 }
 
 
@@ -136,6 +143,50 @@ def spring_force(x, v, pairs, rest, ks, kd):
     # gradient is the sum of the per-spring ones the kernel returns
     ks, kd = (jnp.reshape(jnp.asarray(k, dtype), (-1,)) for k in (ks, kd))
     return _springs(x, v.astype(dtype), pairs.astype(jnp.int32), rest.astype(dtype), ks, kd)
+
+
+def _bending_call(name: str, dtype, shapes, *args):
+    target = f"jaxspring_{name}_{'f64' if jnp.dtype(dtype) == jnp.float64 else 'f32'}"
+    return jax.ffi.ffi_call(target, shapes, vmap_method="broadcast_all")(*args)
+
+
+@jax.custom_vjp
+def _bending(x, v, bends, length, kappa0, kb, kbd):
+    return _bending_call(
+        "bending", x.dtype, jax.ShapeDtypeStruct(x.shape, x.dtype), x, v, bends, length, kappa0, kb, kbd
+    )
+
+
+def _bending_fwd(x, v, bends, length, kappa0, kb, kbd):
+    return _bending(x, v, bends, length, kappa0, kb, kbd), (x, v, bends, length, kappa0, kb, kbd)
+
+
+def _bending_bwd(residuals, cotangent):
+    x, v, bends, length, kappa0, kb, kbd = residuals
+    shapes = [jax.ShapeDtypeStruct(a.shape, x.dtype) for a in (x, x, length, kappa0, kb, kbd)]
+    ct = _bending_call("bending_backward", x.dtype, shapes, x, v, bends, length, kappa0, kb, kbd, cotangent)
+    ct_x, ct_v, ct_length, ct_kappa0, ct_kb, ct_kbd = ct
+    return ct_x, ct_v, jnp.zeros(bends.shape, jax.dtypes.float0), ct_length, ct_kappa0, ct_kb, ct_kbd
+
+
+_bending.defvjp(_bending_fwd, _bending_bwd)
+
+
+def bending_force(x, v, bends, length, kappa0, kb, kbd):
+    """The bending term's force (N, 3) on every particle (forces.py `Bending`); kb, kbd scalars
+    or one per bend triple.
+
+    Example:
+        >>> f = bending_force(x, v, model.bends, model.bend_length, model.rest_curvature, params.kb, params.kbd)
+    """
+    if not available():
+        raise RuntimeError("the native kernel is not built; use backend='jax' (make_model checks this for you)")
+    dtype = x.dtype
+    # a scalar goes in as one value; the kernel sums its per-triple cotangents itself
+    kb, kbd = (jnp.reshape(jnp.asarray(k, dtype), (-1,)) for k in (kb, kbd))
+    shape = jnp.shape(x)
+    f = _bending(x, v.astype(dtype), bends.astype(jnp.int32), length.astype(dtype), kappa0.astype(dtype), kb, kbd)
+    return jnp.reshape(f, shape)
 
 
 # ----------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The native springs stepper: the generic layout, its spring force by the C++ kernel.
+"""The native springs stepper: the generic layout, its spring and bending forces by the C++ kernels.
 
 Any topology and any explicit integrator; the other force terms run in JAX. Reverse
 mode and vmap through the kernel's custom VJP; forward mode (and so backward Euler's
@@ -13,14 +13,14 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from .base import Generic, Stepper
-from .native_kernels import spring_force
+from .native_kernels import bending_force, spring_force
 
-SPRINGS = "springs"
+SPRINGS, BENDING = "springs", "bending"
 
 
 @dataclasses.dataclass(frozen=True)
 class NativeSprings(Stepper):
-    """Generic layout; the springs term's force from `native_kernels.spring_force`."""
+    """Generic layout; the springs and bending terms' forces from `native_kernels`."""
 
     name: ClassVar[str] = "native_springs"
     forward_mode: ClassVar[bool] = False
@@ -34,6 +34,10 @@ class NativeSprings(Stepper):
             if term.name == SPRINGS:
                 total = total + spring_force(
                     x, v, model.springs, model.rest_length, model.per_spring(params.ks), model.per_spring(params.kd)
+                )
+            elif term.name == BENDING:
+                total = total + bending_force(
+                    x, v, model.bends, model.bend_length, model.rest_curvature, params.kb, params.kbd
                 )
             else:
                 total = total + term.force(model, params, x, v)
