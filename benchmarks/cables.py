@@ -178,7 +178,8 @@ def main(argv=None) -> None:
             best = next(r for r in rows if r["name"] == args.sweep_variant)
         sweep = []
         for f in args.starts.split(","):
-            sweep.append(child(folder, best["name"], args.frames, float(f), args.train, args.held_out))
+            reuse = float(f) == 1.0  # the table's own fit of that variant
+            sweep.append(best if reuse else child(folder, best["name"], args.frames, float(f), args.train, args.held_out))
             print(json.dumps(sweep[-1]), flush=True)
         top = min(r["coordinate"] for r in sweep)
         lines += [
