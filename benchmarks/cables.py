@@ -179,7 +179,9 @@ def main(argv=None) -> None:
         sweep = []
         for f in args.starts.split(","):
             reuse = float(f) == 1.0  # the table's own fit of that variant
-            sweep.append(best if reuse else child(folder, best["name"], args.frames, float(f), args.train, args.held_out))
+            sweep.append(
+                best if reuse else child(folder, best["name"], args.frames, float(f), args.train, args.held_out)
+            )
             print(json.dumps(sweep[-1]), flush=True)
         top = min(r["coordinate"] for r in sweep)
         lines += [
