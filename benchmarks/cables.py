@@ -9,9 +9,15 @@ markers frozen at the start frame". Each variant runs in its own process, so its
 peak memory (max RSS) are its own.
 
     python benchmarks/cables.py [--data DIR] [--train 8 --held-out 14 --frames 500] [--variants a,b]
-    python benchmarks/cables.py --starts 0.1,1,10      # the start sweep: every start value x each factor
+    python benchmarks/cables.py --starts 0.1,1,10      # the start sweep around the best values
 
-Writes benchmarks/results/cables_<train>x<frames>.md (and, with --starts, the sweep's table).
+The start sweep (with --starts) first runs a dense search: the training misfit at `--dense` points
+of a Latin hypercube between the table's fitted values / 10 and x 10, then a fit from each of the
+two lowest; the fit of lowest held-out error among them and the table's is "the best".
+Then every start value of the best point times each factor is a start of a default fit, which
+passes when its held-out error is within 5% of the best.
+
+Writes benchmarks/results/cables_<train>x<frames>.md (and, with --starts, the sweep's tables).
 """
 
 from __future__ import annotations
@@ -63,8 +69,8 @@ def load(folder: Path, part: str, frames: int, count: int | None = None):
     return out
 
 
-def run_variant(folder: Path, name: str, frames: int, factor: float, train: int, held_out: int) -> dict:
-    """Fit one variant (in this process) and predict the held-out recordings; the numbers as a dict."""
+def _setup(folder: Path, name: str, frames: int, train: int, held_out: int):
+    """The variant's scene, training target, fitted names, scene values, held-out takes and predict options."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -77,15 +83,26 @@ def run_variant(folder: Path, name: str, frames: int, factor: float, train: int,
     physics = cable.scene["physics"]
     scalars = [k for k in ("cd", "kb", "kbd") if k in physics]
     params = [f"ks.{g}" for g in physics["ks"]] + [f"kd.{g}" for g in physics["kd"]] + scalars
-    init = {f"{k}.{g}": factor * v for k in ("ks", "kd") for g, v in physics[k].items()}
-    init |= {k: factor * physics[k] for k in scalars}
+    values = {f"{k}.{g}": v for k in ("ks", "kd") for g, v in physics[k].items()}
+    values |= {k: physics[k] for k in scalars}
+    options = dict(markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
+    return scene, target, params, values, held, options
+
+
+def run_variant(
+    folder: Path, name: str, frames: int, factor: float, train: int, held_out: int, center: dict | None = None
+) -> dict:
+    """Fit one variant (in this process) from `factor` x `center` (default: the scene's values) and
+    predict the held-out recordings; the numbers as a dict."""
+    import jaxspring as js
+
+    scene, target, params, values, held, options = _setup(folder, name, frames, train, held_out)
+    init = {n: factor * float((center or values)[n]) for n in params}
     clock = time.perf_counter()
     result = js.fit(scene, target, params, init=init)
     fit_s = time.perf_counter() - clock
-    options = dict(markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
     fitted = js.summarise(js.predict(scene, result.final, held, **options))
     started = js.summarise(js.predict(scene, init, held, **options))
-    moved = {n: float(result.final[n]) / init[n] for n in params}
     return dict(
         name=name,
         particles=int(scene.state.x.shape[0]),
@@ -99,16 +116,71 @@ def run_variant(folder: Path, name: str, frames: int, factor: float, train: int,
         frozen_coordinate=fitted.frozen_coordinate_error,
         frozen_distance=fitted.frozen_distance,
         start_coordinate=started.mean_coordinate_error,
-        moved=moved,
+        moved={n: float(result.final[n]) / init[n] for n in params},
+        final={n: float(result.final[n]) for n in params},
         peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     )
 
 
-def child(folder: Path, name: str, frames: int, factor: float, train: int, held_out: int) -> dict:
-    """`run_variant` in a fresh process (its own wall time and peak memory)."""
+def run_dense(
+    folder: Path, name: str, frames: int, train: int, held_out: int, center: dict, count: int, fits: int = 2
+) -> dict:
+    """The dense search (module docstring): the training misfit at `count` points around `center`,
+    then a fit (no start search) from each of the `fits` lowest, predicting the held-out takes."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxspring as js
+    from jaxspring.fit.recording_loss import loss_function, target_data
+    from jaxspring.fit.search import latin_starts
+    from jaxspring.fit.settings import Stage
+
+    scene, target, params, _, held, options = _setup(folder, name, frames, train, held_out)
+    clock = time.perf_counter()
+    points = latin_starts({n: float(center[n]) for n in params}, count + 1, 10.0, seed=1)[1:]
+    misfit = jax.jit(jax.vmap(loss_function(scene, target, params, Stage("direct", target.frame_count - 1)), (0, None)))
+    data, chunk, losses = target_data(target), 16, []
+    for i in range(0, count, chunk):
+        logs = {n: jnp.log(jnp.asarray([p[n] for p in points[i : i + chunk]])) for n in params}
+        losses += [float(v) if math.isfinite(float(v)) else math.inf for v in misfit(logs, data)]
+    scan_s = time.perf_counter() - clock
+    fitted = []
+    for i in np.argsort(losses)[:fits]:
+        clock = time.perf_counter()
+        r = js.fit(scene, target, params, init=points[i], starts=1)
+        final = {n: float(r.final[n]) for n in params}
+        error = js.summarise(js.predict(scene, final, held, **options)).mean_coordinate_error
+        fitted.append(
+            dict(
+                start=points[i],
+                start_loss=losses[i],
+                final=final,
+                coordinate=float(error),
+                train_loss=float(r.loss_history[-1]),
+                fit_s=time.perf_counter() - clock,
+            )
+        )
+    return dict(
+        name=name,
+        count=count,
+        simulated=int(np.isfinite(losses).sum()),
+        scan_s=scan_s,
+        lowest=sorted(losses)[:fits],
+        points=fitted,
+        peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    )
+
+
+def child(
+    folder: Path, name: str, frames: int, factor: float, train: int, held_out: int, center=None, dense: int = 0
+) -> dict:
+    """`run_variant` (or with `dense`, `run_dense`) in a fresh process (its own wall time and peak memory)."""
     argv = [sys.executable, __file__, "--data", str(folder), "--frames", str(frames), "--child", name]
     argv += ["--train", str(train), "--held-out", str(held_out)]
-    argv += ["--factor", repr(factor)]
+    argv += ["--factor", repr(factor), "--dense", str(dense)]
+    if center is not None:
+        argv += ["--center", json.dumps(center)]
     done = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     if done.returncode:
         raise SystemExit(f"variant {name} failed:\n{done.stderr[-3000:]}")
@@ -137,6 +209,53 @@ def table(rows: list[dict], title: str) -> list[str]:
     return lines
 
 
+def start_sweep(folder: Path, args, rows: list[dict]) -> list[str]:
+    """The dense search around the table's fit of the sweep's variant, then a default fit from every
+    factor on the best point found (module docstring); the two tables' lines."""
+    reference = min(rows, key=lambda r: r["coordinate"])
+    if args.sweep_variant:
+        reference = next(r for r in rows if r["name"] == args.sweep_variant)
+    name, where = reference["name"], (folder, reference["name"], args.frames)
+    dense = child(*where, 1.0, args.train, args.held_out, center=reference["final"], dense=args.dense)
+    print(json.dumps(dense), flush=True)
+    candidates = [dict(final=reference["final"], coordinate=reference["coordinate"], start="the table's fit")]
+    candidates += [dict(p, start="a dense-search fit") for p in dense["points"]]
+    best = min(candidates, key=lambda p: p["coordinate"])
+    sweep = []
+    for f in args.starts.split(","):
+        sweep.append(child(*where, float(f), args.train, args.held_out, center=best["final"]))
+        print(json.dumps(sweep[-1]), flush=True)
+    top = best["coordinate"]
+    lines = [
+        "",
+        f"Dense search around the table's fit of {VARIANTS[name][0]}: the training misfit at {dense['count']} points "
+        f"of a Latin hypercube between its values / 10 and x 10 ({dense['simulated']} simulate; "
+        f"{dense['scan_s']:.0f} s), then a default fit without start search from each of the "
+        f"{len(dense['points'])} lowest: "
+        + "; ".join(
+            f"{1e6 * p['start_loss']:.1f} -> {1e6 * p['train_loss']:.1f} mm^2, held out {1e3 * p['coordinate']:.2f} mm "
+            f"({p['fit_s']:.0f} s)"
+            for p in dense["points"]
+        )
+        + f". The best point ({best['start']}): {1e3 * top:.2f} mm, "
+        + ", ".join(f"{n} {v:.4g}" for n, v in best["final"].items())
+        + ".",
+        "",
+        "Start sweep: every value of the best point times a factor, a default fit (js.fit) from there.",
+        "",
+        "| start factor | fit [s] | iterations | training misfit [mm^2] | held-out mean abs. error per coordinate [mm] "
+        "| within 5% of the best | largest move (fitted / start) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in sweep:
+        move = max(r["moved"].values(), key=lambda m: abs(math.log(m)))
+        lines.append(
+            f"| {r['factor']:g} | {r['fit_s']:.0f} | {r['iterations']} | {1e6 * r['train_loss']:.1f} "
+            f"| {1e3 * r['coordinate']:.2f} | {'yes' if r['coordinate'] <= 1.05 * top else 'no'} | {move:.3g} |"
+        )
+    return lines
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", help="folder of cable_recordings.py output (default: made in a temporary folder)")
@@ -148,10 +267,17 @@ def main(argv=None) -> None:
     parser.add_argument("--sweep-variant", help="the start sweep's variant (default: the best of the table)")
     parser.add_argument("--out", help="results file (default benchmarks/results/cables_<train>x<frames>.md)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--dense", type=int, default=256, help="points of the start sweep's dense search")
     parser.add_argument("--factor", type=float, default=1.0, help=argparse.SUPPRESS)
+    parser.add_argument("--center", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(run_variant(Path(args.data), args.child, args.frames, args.factor, args.train, args.held_out)))
+        center = json.loads(args.center) if args.center else None
+        where = (Path(args.data), args.child, args.frames)
+        if center is not None and args.dense:
+            print(json.dumps(run_dense(*where, args.train, args.held_out, center, args.dense)))
+        else:
+            print(json.dumps(run_variant(*where, args.factor, args.train, args.held_out, center)))
         return
     folder = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="jaxspring-cables-"))
     if not (folder / "truth.json").exists():
@@ -173,31 +299,7 @@ def main(argv=None) -> None:
         print(json.dumps(rows[-1]), flush=True)
     lines = table(rows, title)
     if args.starts:
-        best = min(rows, key=lambda r: r["coordinate"])
-        if args.sweep_variant:
-            best = next(r for r in rows if r["name"] == args.sweep_variant)
-        sweep = []
-        for f in args.starts.split(","):
-            reuse = float(f) == 1.0  # the table's own fit of that variant
-            sweep.append(
-                best if reuse else child(folder, best["name"], args.frames, float(f), args.train, args.held_out)
-            )
-            print(json.dumps(sweep[-1]), flush=True)
-        top = min(r["coordinate"] for r in sweep)
-        lines += [
-            "",
-            f"Start sweep of {VARIANTS[best['name']][0]}: every start value times a factor.",
-            "",
-            "| start factor | fit [s] | held-out mean abs. error per coordinate [mm] | within 5% of the best | "
-            "largest move (fitted / start) |",
-            "|---|---|---|---|---|",
-        ]
-        for r in sweep:
-            move = max(r["moved"].values(), key=lambda m: abs(math.log(m)))
-            lines.append(
-                f"| {r['factor']:g} | {r['fit_s']:.0f} | {1e3 * r['coordinate']:.2f} "
-                f"| {'yes' if r['coordinate'] <= 1.05 * top else 'no'} | {move:.3g} |"
-            )
+        lines += start_sweep(folder, args, rows)
     out = Path(args.out) if args.out else HERE / "results" / f"cables_{args.train}x{args.frames}.md"
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -74,15 +74,25 @@ def test_a_window_is_the_full_targets_first_frames(rope, recordings):
     np.testing.assert_allclose(float(short), float(whole), rtol=1e-12)
 
 
-@pytest.mark.parametrize("factor", [0.1, 10.0])
+@pytest.mark.parametrize("factor", [0.1, 10.0, 100.0])
 def test_fits_from_ten_times_off_end_at_the_truth(rope, recordings, factor):
+    """From 10x off either way, and from 100x too stiff and draggy for the time step to simulate
+    (omega_max dt = 4.6 > 2 at ks 40000: the search draws its starts again 10x lower)."""
     target = js.recording_target(rope, recordings, driven=[0], start=2, smooth=3)
     init = {n: factor * v for n, v in TRUTH.items()}
     result = js.fit(rope, target, list(TRUTH), init=init, iterations=60)
     search = result.search
     assert search is not None and len(search.starts) == 8 and search.window == 10 and search.lengthened == 20
+    assert (search.lowered > 0) == (factor == 100.0)
     assert search.found_loss <= search.given_loss  # the search's point is kept only when better
     assert search.used_search
+    # every fitted point is ranked on the whole horizon, and the lowest is the fit's start
+    assert len(search.found) == 2 and search.found_loss == min(search.found_losses)
+    lowest = search.found[int(np.argmin(search.found_losses))]
+    assert all(np.allclose(search.chosen[n], lowest[n]) for n in TRUTH)
+    if factor == 100.0:
+        assert not math.isfinite(search.given_loss)
+        assert all(s["ks.stretch"] <= 1000 * TRUTH["ks.stretch"] for s in search.starts)
     for n, v in TRUTH.items():
         assert abs(float(result.final[n]) / v - 1) < 0.03, (n, result.final)
     assert result.initial["ks.stretch"] == pytest.approx(init["ks.stretch"])  # reported from the given start
