@@ -166,7 +166,6 @@ def run_dense(
         count=count,
         simulated=int(np.isfinite(losses).sum()),
         scan_s=scan_s,
-        lowest=sorted(losses)[:fits],
         points=fitted,
         peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     )

@@ -137,11 +137,11 @@ def search_start(scene, target: RecordingTarget, names, init: dict, settings) ->
     plain = dataclasses.replace(target, fit_start=False, fit_driven=False)
     cut = window(plain, short)
     score = jax.jit(jax.vmap(loss_function(scene, cut, names, Stage("direct", short)), in_axes=(0, None)))
-    spread, center, lowered = float(settings.start_spread), dict(init), 0
+    spread, center, lowered, cut_data = float(settings.start_spread), dict(init), 0, target_data(cut)
     while True:
         starts = latin_starts(center, int(settings.starts), spread)
         logs = {n: jnp.log(jnp.stack([jnp.asarray(s[n], dtype=float) for s in starts])) for n in names}
-        window_loss = np.asarray(score(logs, target_data(cut)), dtype=float)
+        window_loss = np.asarray(score(logs, cut_data), dtype=float)
         window_loss = np.where(np.isfinite(window_loss), window_loss, np.inf)
         if np.isfinite(window_loss).sum() >= min(SEARCH_FITTED, len(starts)) or lowered == SEARCH_LOWERED:
             break
