@@ -27,6 +27,7 @@ from .observations import Observations
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
 from .results import FitProgress, FitResult
+from .retreat import RETREATS, retreat
 from .search import needs_search, search_start
 from .settings import SEGMENT_STATES, FitSettings, Stage, needs_horizon, plan_stages
 from .shooting import describe, free_shooting_stage, segment_fitter
@@ -234,8 +235,9 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     max_memory, on_iteration, start_clock = run.max_memory, run.on_iteration, run.start_clock
     if stage.kind == "ensemble":
         step, init_opt = ensemble_step_function(scene, reference, names, stage, settings, batched_data, progress.theta)
+        loss_of = None
     else:
-        step, init_opt, _ = step_function(loss_function(scene, reference, names, stage), settings, batched_data)
+        step, init_opt, loss_of = step_function(loss_function(scene, reference, names, stage), settings, batched_data)
     opt_state = init_opt(progress.theta)
     if progress.optimizer_leaves is not None:
         structure = jax.tree_util.tree_structure(opt_state)
@@ -251,9 +253,16 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     final_stage = progress.stage == len(stages) - 1
     floor = round_off_loss(scene, reference)
     previous = progress.last_step  # resumed: the checkpoint's, at most as small as the last step
-    while progress.iteration < settings.iterations and not _converged(
-        progress, settings, final_stage, opt_state, floor
-    ):
+    retreats = RETREATS if loss_of is not None and settings.optimizer == "lbfgs" else 0
+    while progress.iteration < settings.iterations:
+        if _converged(progress, settings, final_stage, opt_state, floor):
+            # stopped early: on the stability wall, a softer point is lower (fit.retreat)
+            moved = retreat(progress, names, loss_of, data) if retreats else None
+            if moved is None or not moved.any():
+                break
+            retreats -= 1
+            progress.retreats.append((len(progress.loss), moved))
+            opt_state, progress.last_step, previous = init_opt(progress.theta), None, None
         values = {n: np.asarray(jnp.exp(progress.theta[n])) for n in names}
         theta, opt_state, value = step(progress.theta, opt_state, data)
         moved = np.max(
@@ -379,6 +388,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
                 truth={n: obs.truth[n] for n in names if n in obs.truth} if obs.truth else None,
                 truth_label=getattr(obs, "truth_label", "true"),
                 estimated=estimated,
+                retreats=tuple(i for i, moved in progress.retreats if moved[member]),
             )
         )
     return results

@@ -32,6 +32,8 @@ class FitProgress:
             one, whose answer left more misfit than the recorded positions' noise, or in place
             of a last one of longer segments from them (`noisy_states.refit_from`,
             `refit_stages`); None when none was added.
+        retreats: (iteration, members moved (B,) bool) for each time a stage that stopped early
+            went on from softer values (`fit.retreat`); the iteration indexes `loss`.
     """
 
     stage: int
@@ -46,6 +48,7 @@ class FitProgress:
     wall_s: float = 0.0
     horizon: int | None = None
     refit_frames: int | None = None
+    retreats: list = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +74,8 @@ class FitResult:
             "segment_frame": each segment's first frame (S,) (segments that touch the ground
             are left out).
         search: the start search's `fit.search.SearchReport` on recordings (None without one).
+        retreats: iterations (indices into `loss_history`) from which a stage that stopped early,
+            stalled on the time step's stability wall, went on from softer values (`fit.retreat`).
     """
 
     names: tuple
@@ -87,6 +92,7 @@ class FitResult:
     truth_label: str = "true"
     estimated: dict | None = None
     search: object | None = None
+    retreats: tuple = ()
 
     @property
     def final_loss(self) -> float:
@@ -126,6 +132,11 @@ class FitResult:
         rows.append(f"final loss {self.final_loss:.4g} m^2 after {self.iterations} iterations in {self.wall_s:.2f} s")
         if self.search is not None:
             rows.append(self.search.summary())
+        if self.retreats:
+            rows.append(
+                f"stalled {len(self.retreats)} time(s) before its iteration budget and went on from softer values "
+                f"(stiffness, damping and drag lower) at iteration(s) {', '.join(map(str, self.retreats))}"
+            )
         moved = self.moved()
         stalled = [n for n, r in moved.items() if abs(r - 1) < 0.01]
         rows.append("moved from the initial values: " + ", ".join(f"{n} x{r:.3g}" for n, r in moved.items()))
