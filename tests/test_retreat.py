@@ -12,6 +12,7 @@ import pytest
 import jaxspring as js
 from jaxspring.fit.results import FitProgress
 from jaxspring.fit.retreat import RETREAT_FACTORS, RETREAT_GAIN, retreat
+from jaxspring.io.fit_file import load_fit_progress, save_fit
 
 loop = importlib.import_module("jaxspring.fit.loop")  # the package's `fit` names the function
 
@@ -93,3 +94,30 @@ def test_fit_goes_on_from_softer_values_after_an_early_stop(chain_target, monkey
     plain = js.fit(scene, target, ["ks", "kd"], init=init, **kwargs)
     assert not plain.retreats and plain.iterations == 2
     assert result.final_loss < plain.final_loss
+
+
+def test_a_fit_resumed_after_a_retreat_goes_on_as_an_uninterrupted_one(chain_target, tmp_path):
+    """Interrupted two iterations after its retreat, saved to a fit file and resumed from it, the fit
+    repeats the uninterrupted one's iterations and retreats exactly (the stage's retreats
+    are counted from the file, not started again)."""
+    scene, target = chain_target
+    args = (scene, [target], ["ks", "kd"], [{"ks": 320.0, "kd": 0.32}])
+    options = dict(strategy="direct", step_tolerance=1e9, iterations=12, polish=False, identify=False)
+    whole = js.fit_batch(*args, **options)[0]
+    assert whole.retreats
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(progress, stages):
+        if progress.retreats and len(progress.loss) == progress.retreats[0][0] + 2:
+            save_fit(tmp_path / "f.fit.h5", {"a": 1}, ["ks", "kd"], args[3][0], progress)
+            raise Stop
+
+    with pytest.raises(Stop):
+        js.fit_batch(*args, on_iteration=interrupt, **options)
+    progress = load_fit_progress(tmp_path / "f.fit.h5", {"a": 1}, ["ks", "kd"])
+    assert [i for i, _ in progress.retreats] == [whole.retreats[0]]
+    resumed = js.fit_batch(*args, progress=progress, **options)[0]
+    assert resumed.retreats == whole.retreats
+    np.testing.assert_allclose(resumed.loss_history, whole.loss_history, rtol=1e-12)

@@ -253,7 +253,10 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     final_stage = progress.stage == len(stages) - 1
     floor = round_off_loss(scene, reference)
     previous = progress.last_step  # resumed: the checkpoint's, at most as small as the last step
-    retreats = RETREATS if loss_of is not None and settings.optimizer == "lbfgs" else 0
+    # the stage's retreats so far count (a resumed stage goes on as an uninterrupted one)
+    stage_began = len(progress.loss) - progress.iteration
+    used = sum(1 for i, _ in progress.retreats if i >= stage_began)
+    retreats = RETREATS - used if loss_of is not None and settings.optimizer == "lbfgs" else 0
     while progress.iteration < settings.iterations:
         if _converged(progress, settings, final_stage, opt_state, floor):
             # stopped early: on the stability wall, a softer point is lower (fit.retreat)

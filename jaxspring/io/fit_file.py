@@ -70,6 +70,9 @@ def save_fit(
             optimizer.attrs["horizon"] = int(progress.horizon)
         if progress.refit_frames is not None:
             optimizer.attrs["refit_frames"] = int(progress.refit_frames)
+        retreats = [int(i) for i, moved in progress.retreats if np.asarray(moved)[0]]  # the file's member's
+        if retreats:
+            optimizer.attrs["retreats"] = retreats
         theta = optimizer.create_group("theta")
         for n in progress.theta:  # the log parameters, and a fitted start state and driven paths
             theta.create_dataset(n, data=np.asarray(progress.theta[n]))
@@ -135,6 +138,7 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
             wall_s=float(optimizer.attrs["wall_s"]),
             horizon=int(optimizer.attrs["horizon"]) if "horizon" in optimizer.attrs else None,
             refit_frames=int(optimizer.attrs["refit_frames"]) if "refit_frames" in optimizer.attrs else None,
+            retreats=[(int(i), np.array([True])) for i in optimizer.attrs.get("retreats", [])],
         )
 
 
