@@ -8,6 +8,17 @@ import numpy as np
 from .results import FitProgress
 
 
+def finite_losses(loss) -> np.ndarray:
+    """`loss` as floats, every non-finite value (a rollout that blew up) as infinity, so it ranks last."""
+    loss = np.asarray(loss, dtype=float)
+    return np.where(np.isfinite(loss), loss, np.inf)
+
+
+def where_members(mask, a, b):
+    """Per member (leading axis): `a` where `mask` (B,) holds, else `b`."""
+    return jnp.where(jnp.asarray(mask).reshape((-1,) + (1,) * (jnp.ndim(b) - 1)), a, b)
+
+
 def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> tuple[bool, np.ndarray | None]:
     """End a stage on the best point it has seen on its own loss (per member): the point it
     stopped at, or an earlier one with a lower loss (Adam's and the ensemble's losses are not
@@ -19,10 +30,10 @@ def keep_best_of_stage(progress: FitProgress, names, step, opt_state, data) -> t
         return False, None
     _, _, end = step(progress.theta, opt_state, data)  # the loss where the stage stopped
     losses = np.stack([np.asarray(progress.loss[i], dtype=float) for i in done])
-    losses = np.where(np.isfinite(losses), losses, np.inf)
+    losses = finite_losses(losses)
     best = np.argmin(losses, axis=0)
     members = np.arange(losses.shape[1])
-    end = np.where(np.isfinite(np.asarray(end, dtype=float)), np.asarray(end, dtype=float), np.inf)
+    end = finite_losses(end)
     back = losses[best, members] < end
     if not back.any():
         return False, end
@@ -52,9 +63,6 @@ def best_of_stages(progress: FitProgress, names, value, data):
         candidate_loss = np.asarray(value(candidate, data), dtype=float)
         better = np.isfinite(candidate_loss) & ((candidate_loss < loss) | ~np.isfinite(loss))
         if better.any():
-            theta = {
-                n: jnp.where(better.reshape((-1,) + (1,) * (np.ndim(theta[n]) - 1)), candidate[n], theta[n])
-                for n in names
-            }
+            theta = {n: where_members(better, candidate[n], theta[n]) for n in names}
             loss = np.where(better, candidate_loss, loss)
     return theta, loss

@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..sim.params import NON_NEGATIVE, split_name
+from .best_point import finite_losses, where_members
 from .results import FitProgress
 
 RETREAT_FACTORS = (0.97, 0.9)
@@ -44,11 +44,6 @@ def soft_names(names) -> list[str]:
     return [n for n in names if split_name(n)[0] in NON_NEGATIVE]
 
 
-def _finite(loss) -> np.ndarray:
-    loss = np.asarray(loss, dtype=float)
-    return np.where(np.isfinite(loss), loss, np.inf)
-
-
 def retreat(progress: FitProgress, names, value, data) -> np.ndarray:
     """Move each member whose loss is lower at a softer point (module docstring) there.
 
@@ -56,19 +51,16 @@ def retreat(progress: FitProgress, names, value, data) -> np.ndarray:
     loss per member. Returns the members moved, (B,) bool; `progress.theta` is updated
     (the other entries of theta, a fitted start state for one, are kept)."""
     soft = soft_names(names)
-    current = _finite(value(progress.theta, data))
+    current = finite_losses(value(progress.theta, data))
     if not soft:
         return np.zeros(current.shape, bool)
     best_loss, best = current.copy(), dict(progress.theta)
     for factor in RETREAT_FACTORS:
         trial = {n: v + math.log(factor) if n in soft else v for n, v in progress.theta.items()}
-        loss = _finite(value(trial, data))
+        loss = finite_losses(value(trial, data))
         lower = (loss < best_loss) & (loss <= (1 - RETREAT_GAIN) * current)
         if lower.any():
-            best = {
-                n: jnp.where(jnp.asarray(lower).reshape((-1,) + (1,) * (jnp.ndim(v) - 1)), trial[n], v)
-                for n, v in best.items()
-            }
+            best = {n: where_members(lower, trial[n], v) for n, v in best.items()}
             best_loss = np.where(lower, loss, best_loss)
     moved = best_loss < current
     if moved.any():

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .best_point import finite_losses
 from .recording_loss import loss_function, target_data
 from .recordings import RecordingTarget
 from .settings import Stage
@@ -141,8 +142,7 @@ def search_start(scene, target: RecordingTarget, names, init: dict, settings) ->
     while True:
         starts = latin_starts(center, int(settings.starts), spread)
         logs = {n: jnp.log(jnp.stack([jnp.asarray(s[n], dtype=float) for s in starts])) for n in names}
-        window_loss = np.asarray(score(logs, cut_data), dtype=float)
-        window_loss = np.where(np.isfinite(window_loss), window_loss, np.inf)
+        window_loss = finite_losses(score(logs, cut_data))
         if np.isfinite(window_loss).sum() >= min(SEARCH_FITTED, len(starts)) or lowered == SEARCH_LOWERED:
             break
         # the time step cannot simulate most starts: stiffness, damping and drag too high for
@@ -152,8 +152,7 @@ def search_start(scene, target: RecordingTarget, names, init: dict, settings) ->
     found, best = [], 0
     if chosen:
         results = fit_batch(scene, [cut], names, [starts[i] for i in chosen], quick, identify=False)
-        fitted_loss = np.array([r.loss_history[-1] for r in results], dtype=float)
-        fitted_loss = np.where(np.isfinite(fitted_loss), fitted_loss, np.inf)
+        fitted_loss = finite_losses([r.loss_history[-1] for r in results])
         window_loss[chosen] = np.minimum(window_loss[chosen], fitted_loss)
         best = chosen[int(np.argmin(fitted_loss))]
         found = _simulated([{n: np.asarray(r.final[n]) for n in names} for r in results])
