@@ -10,8 +10,6 @@ Example:
     >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
 """
 
-__version__ = "0.1.0"
-
 from .errors import BlowUpError, FileFormatError, InputError, JaxspringError
 from .fit import (
     FitProgress,
@@ -55,6 +53,7 @@ from .sim.sharding import batch_mesh, shard_batch
 from .sim.stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup, stable_dt
 from .sim.state import State, Trajectory
 from .sim.topology import lattice_faces, lattice_positions, lattice_springs
+from .version import __version__  # noqa: F401  (jaxspring.__version__)
 
 __all__ = [
     # simulate

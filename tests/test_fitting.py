@@ -549,8 +549,8 @@ def test_a_fit_never_returns_a_point_worse_than_one_it_passed():
 def test_the_best_stage_wins_on_the_final_loss():
     """Stages judged on the final objective by a loss written in the test: stage 1 walked away
     from where stage 0 left it (log ks 0.1 from the optimum at 0; stage 1 ended at 2.0)."""
-    from jaxspring.fit.best_point import best_of_stages
-    from jaxspring.fit.results import FitProgress
+    from jaxspring.fit.gradient import best_of_stages
+    from jaxspring.fit.progress import FitProgress
 
     values = {
         "ks": [np.array([np.exp(3.0)]), np.array([np.exp(1.0)]), np.array([np.exp(0.1)]), np.array([np.exp(1.5)])]

@@ -17,7 +17,7 @@ from hostile import _jaxspring
 import jaxspring as js
 from jaxspring.fit.horizon import horizon_stage, round_off_loss, smooth_horizon
 from jaxspring.fit.objective import loss_function, target_data
-from jaxspring.fit.results import FitProgress
+from jaxspring.fit.progress import FitProgress
 from jaxspring.fit.settings import Stage, needs_horizon, over_horizon
 from jaxspring.io.fit_file import load_fit_progress, save_fit
 

@@ -11,7 +11,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring.fit.position_shooting import start_fitted_noise
-from jaxspring.fit.results import FitProgress
+from jaxspring.fit.progress import FitProgress
 from jaxspring.fit.settings import plan_stages
 from jaxspring.io.fit_file import load_fit_progress, save_fit
 

@@ -365,7 +365,7 @@ def _noise_free():
 
 
 def test_a_fitted_start_state_and_driven_paths_are_kept_for_resume(tmp_path):
-    from jaxspring.fit.results import FitProgress
+    from jaxspring.fit.progress import FitProgress
     from jaxspring.io.fit_file import load_fit_progress, save_fit
 
     start = np.random.default_rng(0).normal(size=(1, 2, N, 6))

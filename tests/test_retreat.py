@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import jaxspring as js
-from jaxspring.fit.results import FitProgress
-from jaxspring.fit.retreat import RETREAT_FACTORS, RETREAT_GAIN, retreat
+from jaxspring.fit.gradient import RETREAT_FACTORS, RETREAT_GAIN, retreat
+from jaxspring.fit.progress import FitProgress
 from jaxspring.io.fit_file import load_fit_progress, save_fit
 
 loop = importlib.import_module("jaxspring.fit.loop")  # the package's `fit` names the function

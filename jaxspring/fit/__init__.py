@@ -21,7 +21,8 @@ from .horizon import Horizon, smooth_horizon
 from .identifiability import Identifiability, identifiability
 from .loop import fit, fit_batch
 from .observations import Observations, observations_from_trajectory, synthetic_observations
-from .results import FitProgress, FitResult
+from .progress import FitProgress
+from .results import FitResult
 from .settings import FitSettings
 
 __all__ = [

@@ -14,7 +14,6 @@ ends with Levenberg-Marquardt steps (`finish_shooting_stage`, `finish_segments`)
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -24,9 +23,7 @@ from jax.flatten_util import ravel_pytree
 from ..sim.sharding import shard_batch
 from .horizon import round_off_loss
 from .objective import segment_misfit_function, target_data
-
-if TYPE_CHECKING:
-    from .results import FitProgress
+from .progress import FitProgress
 
 MAX_VALUES = 64
 """Levenberg-Marquardt takes a column of the Jacobian per fitted value: with more values than

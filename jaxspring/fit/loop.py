@@ -15,23 +15,22 @@ from ..errors import InputError
 from ..resources import check_compiled
 from ..sim.scene import Scene
 from ..sim.sharding import shard_batch
-from .best_point import best_of_stages, keep_best_of_stage
-from .convergence import converged as _converged
 from .ensemble import ensemble_step_function
+from .gradient import RETREATS, best_of_stages, keep_best_of_stage, retreat, step_function
+from .gradient import converged as _converged
 from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
 from .identifiability import gauss_newton_polish, identifiability, start_polish
 from .least_squares import finish_shooting_stage
 from .noisy_states import refit_from, refit_stages, why_refit
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
+from .position_shooting import describe, free_shooting_stage, segment_fitter
+from .progress import FitProgress
 from .recording_loss import NUISANCE, estimated_inputs, start_unknowns, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
-from .results import FitProgress, FitResult
-from .retreat import RETREATS, retreat
+from .results import FitResult
 from .search import needs_search, search_start
 from .settings import SEGMENT_STATES, FitSettings, Stage, needs_horizon, plan_stages
-from .shooting import describe, free_shooting_stage, segment_fitter
-from .step import step_function
 
 
 def fit(
@@ -127,7 +126,7 @@ def fit_batch(
     stages = plan_stages(reference, settings, scene, values=sum(math.prod(shapes[n]) for n in names))
     search = None
     if progress is None and needs_search(reference, settings, members):  # recordings: find a start first
-        search = search_start(scene, reference, names, start_values[0], settings)
+        search = search_start(scene, reference, names, start_values[0], settings, fit_batch)
     if progress is None:
         first = [search.chosen] if search else start_values
         theta = {n: jnp.stack([jnp.log(jnp.broadcast_to(jnp.asarray(s[n]), shapes[n])) for s in first]) for n in names}
@@ -259,7 +258,7 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     retreats = RETREATS - used if loss_of is not None and settings.optimizer == "lbfgs" else 0
     while progress.iteration < settings.iterations:
         if _converged(progress, settings, final_stage, opt_state, floor):
-            # stopped early: on the stability wall, a softer point is lower (fit.retreat)
+            # stopped early: on the stability wall, a softer point is lower (fit.gradient.retreat)
             moved = retreat(progress, names, loss_of, data) if retreats else None
             if moved is None or not moved.any():
                 break

@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..sim.scene import Scene
-from .best_point import best_of_stages
+from .gradient import best_of_stages, step_function
 from .objective import loss_function
 from .position_shooting import start_fitted_noise
-from .results import FitProgress
+from .progress import FitProgress
 from .settings import SEGMENT_STATES, FitSettings, Stage
-from .step import step_function
 
 NOISE_FREE = 1e-4
 """Recorded positions whose noise (`start_fitted_noise`) has an RMS below this fraction of the

@@ -1,6 +1,7 @@
 """Multiple shooting from recorded states whose positions are noisy (strategy
 "position_shooting"): segments from the recorded states, not joined, each with its start
-positions fitted with the parameters and its velocities as recorded."""
+positions fitted with the parameters and its velocities as recorded. Also the plan's stages
+that fit segment states (this kind, or "free_shooting" from `shooting`) over a fit's members."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from ..sim.rollout import rollout
 from ..sim.state import State
 from .block_lm import block_levenberg_marquardt
 from .observations import Observations
-from .shooting import SegmentFit, _values
+from .shooting import SegmentFit, fit_segments, values_of
 
 
 def fit_recorded_segments(
@@ -53,10 +54,10 @@ def fit_recorded_segments(
     data_count = int(seg.owned.sum()) * seg.observed * 3
     starts = State(x=jax.vmap(seg.start)(jnp.asarray(solution.s), seg.data), v=seg.data["gv"])
     return SegmentFit(
-        values=_values(seg.unravel, solution.p),
+        values=values_of(seg.unravel, solution.p),
         starts=starts,
         defects=np.zeros((0, 2)),
-        history=[(cost / data_count, _values(seg.unravel, q)) for cost, q in solution.history],
+        history=[(cost / data_count, values_of(seg.unravel, q)) for cost, q in solution.history],
         loss=solution.cost / data_count,
         reduced=solution.reduced,
         count=data_count,
@@ -212,3 +213,48 @@ def _segment_misfit(model, params, particles, free, s_b, d, frames, every):
         model, params, State(x=_segment_start(free, s_b, d), v=d["gv"]), steps=frames * every, save_every=every
     )
     return jnp.where(d["owned"][:, None, None], traj.x[:, particles] - d["x"], 0.0).reshape(-1)
+
+
+def segment_fitter(kind: str):
+    """The fit of a stage of `kind` that fits the segments' states: "free_shooting"
+    (`fit_segments`) or "position_shooting" (`fit_recorded_segments`)."""
+    return fit_recorded_segments if kind == "position_shooting" else fit_segments
+
+
+def free_shooting_stage(scene, observations, names, stage, settings, progress) -> list[SegmentFit]:
+    """A plan's "free_shooting" stage (`fit_segments`) or "position_shooting" stage
+    (`fit_recorded_segments`) for every member of `progress` from its current values; appends
+    the accepted steps to the history and leaves the answers in `progress.theta`. Returns each
+    member's SegmentFit."""
+    fit_of = segment_fitter(stage.kind)
+    members = int(np.shape(progress.theta[names[0]])[0])
+    fits = []
+    for m in range(members):
+        target = observations[m if len(observations) > 1 else 0]
+        values = {n: np.exp(np.asarray(progress.theta[n][m], dtype=float)) for n in names}
+        fits.append(fit_of(scene, target, names, values, stage.frames, settings.iterations, settings.step_tolerance))
+    for i in range(max(len(f.history) for f in fits)):  # members that finished early repeat their answer
+        entries = [f.history[i] if i < len(f.history) else (f.loss, f.values) for f in fits]
+        progress.loss.append(np.array([loss for loss, _ in entries]))
+        for n in names:
+            progress.values[n].append(np.stack([np.asarray(v[n]) for _, v in entries]))
+        progress.stage_of_iteration.append(progress.stage)
+    progress.theta = {n: jnp.stack([jnp.log(jnp.asarray(f.values[n])) for f in fits]) for n in names}
+    return fits
+
+
+def describe(fit: SegmentFit) -> str:
+    """The objective a SegmentFit minimises, in words (for the identifiability report)."""
+    segments = fit.starts.x.shape[0]
+    if fit.recorded:
+        return (
+            f"multiple shooting: the misfit of {segments} segments of {fit.segment_frames} frames, each from its "
+            "recorded state with the positions fitted (the recorded ones are one more frame of data) and the "
+            "velocities as recorded"
+        )
+    left_out = f"; {fit.left_out} touching the ground left out" if fit.left_out else ""
+    gap = f"largest continuity gap {fit.defects[:, 0].max():.2g} m" if len(fit.defects) else "none joined"
+    return (
+        f"multiple shooting: the misfit of {segments} segments of {fit.segment_frames} frames, each from a "
+        f"fitted start state ({gap}{left_out})"
+    )

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .best_point import finite_losses
+from .gradient import finite_losses
 from .recording_loss import loss_function, target_data
 from .recordings import RecordingTarget
 from .settings import Stage
@@ -126,9 +126,9 @@ def _simulated(points: list[dict]) -> list[dict]:
     return [p for p in points if all(np.all(np.isfinite(v)) for v in p.values())]
 
 
-def search_start(scene, target: RecordingTarget, names, init: dict, settings) -> SearchReport:
-    """Run the start search (module docstring) from `init` (name -> value, every name given)."""
-    from .loop import fit_batch  # the loop calls this module
+def search_start(scene, target: RecordingTarget, names, init: dict, settings, fit_batch) -> SearchReport:
+    """Run the start search (module docstring) from `init` (name -> value, every name given);
+    `fit_batch` fits the windows (the loop's own, handed in: the loop runs this search first)."""
 
     clock = time.perf_counter()
     total = target.frame_count - 1

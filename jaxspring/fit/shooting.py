@@ -255,7 +255,7 @@ def shooting_problem(
     )
 
 
-def _values(unravel, p) -> dict:
+def values_of(unravel, p) -> dict:
     return {n: np.asarray(jnp.exp(x)) for n, x in unravel(jnp.asarray(p)).items()}
 
 
@@ -294,12 +294,12 @@ def fit_segments(
             linked=problem.links,
             bounds=light if stage < len(weights) - 1 else None,
         )
-        history += [(cost / problem.count, _values(problem.unravel, p)) for cost, p in solution.history]
+        history += [(cost / problem.count, values_of(problem.unravel, p)) for cost, p in solution.history]
         moved, p = np.max(np.abs(solution.p - p), initial=0.0), solution.p
         guess = problem.to_states(solution.s, data)
         if stage and moved <= tolerance:  # raising the weight changed nothing
             break
-    values = _values(problem.unravel, p)
+    values = values_of(problem.unravel, p)
     model = scene.model
     params = model.params_with(scene.params, values)
     steps = int(segment_frames) * observations.save_every
@@ -324,51 +324,4 @@ def fit_segments(
         first_frames=problem.first_frames,
         link_rows=int(problem.links.sum()) * problem.s0.shape[1],
         left_out=problem.left_out,
-    )
-
-
-def segment_fitter(kind: str):
-    """The fit of a stage of `kind` that fits the segments' states: "free_shooting"
-    (`fit_segments`) or "position_shooting" (`fit_recorded_segments`)."""
-    from .position_shooting import fit_recorded_segments  # it builds on this module
-
-    return fit_recorded_segments if kind == "position_shooting" else fit_segments
-
-
-def free_shooting_stage(scene, observations, names, stage, settings, progress) -> list[SegmentFit]:
-    """A plan's "free_shooting" stage (`fit_segments`) or "position_shooting" stage
-    (`fit_recorded_segments`) for every member of `progress` from its current values; appends
-    the accepted steps to the history and leaves the answers in `progress.theta`. Returns each
-    member's SegmentFit."""
-    fit_of = segment_fitter(stage.kind)
-    members = int(np.shape(progress.theta[names[0]])[0])
-    fits = []
-    for m in range(members):
-        target = observations[m if len(observations) > 1 else 0]
-        values = {n: np.exp(np.asarray(progress.theta[n][m], dtype=float)) for n in names}
-        fits.append(fit_of(scene, target, names, values, stage.frames, settings.iterations, settings.step_tolerance))
-    for i in range(max(len(f.history) for f in fits)):  # members that finished early repeat their answer
-        entries = [f.history[i] if i < len(f.history) else (f.loss, f.values) for f in fits]
-        progress.loss.append(np.array([loss for loss, _ in entries]))
-        for n in names:
-            progress.values[n].append(np.stack([np.asarray(v[n]) for _, v in entries]))
-        progress.stage_of_iteration.append(progress.stage)
-    progress.theta = {n: jnp.stack([jnp.log(jnp.asarray(f.values[n])) for f in fits]) for n in names}
-    return fits
-
-
-def describe(fit: SegmentFit) -> str:
-    """The objective a SegmentFit minimises, in words (for the identifiability report)."""
-    segments = fit.starts.x.shape[0]
-    if fit.recorded:
-        return (
-            f"multiple shooting: the misfit of {segments} segments of {fit.segment_frames} frames, each from its "
-            "recorded state with the positions fitted (the recorded ones are one more frame of data) and the "
-            "velocities as recorded"
-        )
-    left_out = f"; {fit.left_out} touching the ground left out" if fit.left_out else ""
-    gap = f"largest continuity gap {fit.defects[:, 0].max():.2g} m" if len(fit.defects) else "none joined"
-    return (
-        f"multiple shooting: the misfit of {segments} segments of {fit.segment_frames} frames, each from a "
-        f"fitted start state ({gap}{left_out})"
     )

@@ -11,8 +11,9 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..fit.identifiability import Identifiability, unique_names
+from ..fit.progress import FitProgress
 from ..fit.recording_loss import NUISANCE
-from ..fit.results import FitProgress, FitResult
+from ..fit.results import FitResult
 from ..fit.settings import PLAN_VERSION
 from .trajectory import atomic_path, open_hdf5
 
@@ -38,7 +39,7 @@ def save_fit(
     Example:
         >>> save_fit("chain.fit.h5", config, result.names, result.initial, progress, result)
     """
-    from .. import __version__
+    from ..version import __version__
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(

@@ -116,7 +116,7 @@ def save_trajectory(path, scene: Scene, trajectory: Trajectory) -> None:
     Example:
         >>> js.save_trajectory("cloth.h5", scene, traj)
     """
-    from .. import __version__
+    from ..version import __version__
 
     x = np.asarray(trajectory.x)
     model = scene.model

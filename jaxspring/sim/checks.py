@@ -5,8 +5,6 @@ Each failure is an `InputError` naming the field and the fix (one line).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import jax.numpy as jnp
 import numpy as np
 
@@ -14,11 +12,8 @@ from ..errors import InputError
 from .forces import TERM_PARAMETERS
 from .params import NON_NEGATIVE, PARAMETER_INFO, PER_GROUP, Params
 
-if TYPE_CHECKING:
-    from .model import Model
 
-
-def check_params(model: Model, params: Params) -> Params:
+def check_params(model, params: Params) -> Params:
     """Validate `params` against `model`: present where needed, absent otherwise, shapes, signs.
 
     Returns the params with values cast to the default float dtype.
@@ -44,7 +39,7 @@ def check_params(model: Model, params: Params) -> Params:
     return params.replace(**changes)
 
 
-def _check_value(model: Model, name: str, value, per, count=None):
+def _check_value(model, name: str, value, per, count=None):
     """One parameter value checked (numeric, finite, shape, sign) and cast to the default float dtype."""
     try:
         value = np.asarray(value, dtype=float)
@@ -90,7 +85,7 @@ def check_representable(name, value, dtype) -> None:
         )
 
 
-def _check_group_values(model: Model, name: str, values: dict) -> dict:
+def _check_group_values(model, name: str, values: dict) -> dict:
     """{group: value} for ks or kd: exactly the model's groups, each a scalar or one value per spring of it."""
     groups = dict(model.spring_groups)
     if name not in PER_GROUP or not groups:
