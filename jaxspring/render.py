@@ -31,11 +31,14 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, out) -> Path:
-    """Save `fig` to `out` atomically (format from the suffix) and close it."""
+def save_figure(fig, out, writer: str | None = None) -> Path:
+    """Save `fig` to `out` atomically (format from the suffix) and close it; `writer` goes into a
+    PNG's text chunk "writer" (what wrote it)."""
     out = Path(out)
+    kind = out.suffix.lstrip(".").lower() or "png"
+    metadata = {"writer": writer} if writer and kind == "png" else None
     with atomic_path(out) as tmp:
-        fig.savefig(tmp, format=out.suffix.lstrip(".") or "png", dpi=fig.dpi)
+        fig.savefig(tmp, format=kind, dpi=fig.dpi, metadata=metadata)
     pyplot().close(fig)
     return out
 
@@ -179,7 +182,7 @@ def plot_fit(result, out) -> Path:
     return save_figure(fig, out)
 
 
-def plot_prediction(prediction, out, markers: int = 4) -> Path:
+def plot_prediction(prediction, out, markers: int = 4, writer: str | None = None) -> Path:
     """Recorded against predicted marker heights (up to `markers` markers, with the 95% band
     where present) and the marker error against time, as a PNG written atomically.
 
@@ -210,10 +213,10 @@ def plot_prediction(prediction, out, markers: int = 4) -> Path:
     )
     errors.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    return save_figure(fig, Path(out))
+    return save_figure(fig, Path(out), writer)
 
 
-def plot_error_summary(summary, predictions, out) -> Path:
+def plot_error_summary(summary, predictions, out, writer: str | None = None) -> Path:
     """The pooled error of `predictions` (`summarise`) per marker (bars) and over time since the
     start (mean over recordings, with each recording's own curve faint), as a PNG written atomically.
 
@@ -244,4 +247,4 @@ def plot_error_summary(summary, predictions, out) -> Path:
     )
     curve.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    return save_figure(fig, Path(out))
+    return save_figure(fig, Path(out), writer)

@@ -116,7 +116,21 @@ def _fit_problem(args):
             loss=experiment.loss,
             huber_scale=experiment.huber_scale,
         )
+    config["input_content"] = _input_digests(args, experiment)
     return experiment, observations, experiment.params, init, settings, config
+
+
+def _input_digests(args, experiment) -> dict:
+    """SHA-256 of the scene's text and of every file the fit reads its target from: a fit file
+    remembers them, and `--resume` refuses inputs that changed since (by name, in its error)."""
+    import hashlib
+
+    digests = {"scene": hashlib.sha256(experiment.scene_text.encode("utf-8")).hexdigest()}
+    files = [args.experiment, args.target, experiment.target_file, *experiment.recordings]
+    for path in dict.fromkeys(str(p) for p in files if p is not None):
+        if Path(path).is_file():
+            digests[path] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return digests
 
 
 def command(args):
@@ -155,6 +169,7 @@ def command(args):
         }
     for path in (out, plot):
         check_output(path, inputs)
+    held_out = _held_out(experiment)  # checked before the fit, not after it
     progress = load_fit_progress(out, config, names) if args.resume else None
     present = scene.model.parameter_values(scene.params)
     initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
@@ -222,27 +237,55 @@ def command(args):
             signal.signal(sig, handler)
     plot_fit(result, plot)
     print(result.table())
-    if experiment.evaluate:
-        _evaluate(experiment, result)
+    if held_out:
+        _evaluate(experiment, result, held_out)
     print(f"wrote {out} and {plot}")
 
 
-def _evaluate(experiment, result):
-    """Print the fitted model's error on the experiment's held-out recordings."""
-    from ..fit.predict import predict
+def _held_out(experiment) -> list:
+    """The experiment's `[evaluate]` recordings, read and checked against its markers, driven
+    markers and start frame (each problem an InputError naming the file)."""
+    from ..errors import InputError
+    from ..fit.recordings import recording_target
     from ..io.recording import load_recording
 
+    held_out = [load_recording(p) for p in experiment.evaluate]
+    for path, recording in zip(experiment.evaluate, held_out):
+        try:
+            recording_target(
+                experiment.scene,
+                [recording],
+                experiment.markers,
+                experiment.driven,
+                experiment.start,
+                experiment.smooth,
+            )
+        except InputError as exc:
+            raise exc.within(str(path), "evaluate") from None
+    return held_out
+
+
+def _evaluate(experiment, result, held_out):
+    """Print the fitted model's error on the experiment's held-out recordings; a prediction that
+    blows up is reported as such (the fit itself is saved)."""
+    from ..errors import BlowUpError
+    from ..fit.predict import predict
+
     paths = experiment.evaluate
-    predictions = predict(
-        experiment.scene,
-        result.final,
-        [load_recording(p) for p in paths],
-        experiment.markers,
-        experiment.driven,
-        experiment.start,
-        experiment.smooth,
-        names=tuple(Path(p).stem for p in paths),
-    )
+    try:
+        predictions = predict(
+            experiment.scene,
+            result.final,
+            held_out,
+            experiment.markers,
+            experiment.driven,
+            experiment.start,
+            experiment.smooth,
+            names=tuple(Path(p).stem for p in paths),
+        )
+    except BlowUpError as exc:
+        print(f"held-out: unstable, no error to report: {exc}")
+        return
     print_errors("held-out", predictions)
 
 

@@ -3,14 +3,21 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import BlowUpError, InputError
+from ..resources import check_memory
 from .identifiability import unique_names
 from .recording_loss import carriers, markers_simulated, target_data
 from .recordings import RecordingTarget, recording_target
+
+MIN_BAND_DRAWS = 16
+"""Fewest parameter sets a 95% band is drawn from (its 2.5% and 97.5% percentiles need at
+least this many to mean anything); fewer stable ones than this gives a warning."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +45,8 @@ class Prediction:
         coverage: the fraction of seen marker coordinates after `start` inside the band.
         frozen_coordinate_error, frozen_distance: the baseline: the same errors when the free
             markers stay where they were at `start` and the driven ones move as recorded.
+        band_draws: the parameter sets drawn for the band; band_unstable: how many of them blew
+            up (past the time step's stability limit) and were left out of it.
     """
 
     name: str
@@ -56,6 +65,8 @@ class Prediction:
     frozen_coordinate_error: float | None = None
     frozen_distance: float | None = None
     marker_names: tuple = ()
+    band_draws: int = 0
+    band_unstable: int = 0
 
     @property
     def coordinate_errors(self) -> np.ndarray:
@@ -178,17 +189,42 @@ def predict(
         >>> out[0].mean_coordinate_error, out[0].mean_distance
     """
     recordings = list(recordings)
+    samples = (64 if covariance is not None else 0) if samples is None else int(samples)
+    if samples and covariance is not None and samples < MIN_BAND_DRAWS:
+        raise InputError(
+            "bands", f"{samples} parameter set(s) cannot make a 95% band", f"draw at least {MIN_BAND_DRAWS} (e.g. 64)"
+        )
     target = recording_target(scene, recordings, markers, driven, start, smooth, names=names)
     model = scene.model
     params = model.params_with(scene.params, {n: jnp.asarray(v) for n, v in values.items()})
     run = simulator(scene, target)
     simulated = np.asarray(jax.jit(run)(params))
+    for i in range(len(recordings)):
+        _refuse_blowup(simulated[i, : int(target.lengths[i])], target, i, start)
     low = high = None
-    samples = (64 if covariance is not None else 0) if samples is None else int(samples)
+    unstable = 0
     if samples and covariance is not None:
+        need = 3 * samples * simulated.nbytes  # the runs, their stable subset and the percentiles' sort
+        check_memory(need, f"a band of {samples} parameter sets", "bands", "draw fewer parameter sets (e.g. 64)")
         draws = _draw(values, covariance, samples, seed)
         batch = jax.vmap(lambda v: model.params_with(scene.params, v))(draws)
         runs = np.asarray(jax.jit(jax.vmap(run))(batch))
+        used = np.arange(runs.shape[2])[None, :] < np.asarray(target.lengths)[:, None]  # (R, F)
+        stable = np.all(np.isfinite(runs) | ~used[None, :, :, None, None], axis=(1, 2, 3, 4))
+        unstable = int(samples - stable.sum())
+        if not stable.any():
+            raise BlowUpError(
+                f"every one of the {samples} parameter sets drawn for the band blew up (past the time step's "
+                "stability limit); predict without a band, or fit with a smaller dt"
+            )
+        if stable.sum() < MIN_BAND_DRAWS:
+            warnings.warn(
+                f"the 95% band rests on {int(stable.sum())} of {samples} parameter sets ({unstable} blew up); "
+                f"it is rough below {MIN_BAND_DRAWS}: draw more",
+                BandWarning,
+                stacklevel=2,
+            )
+        runs = runs[stable]
         widen = 1.96 * float(noise_std)
         low = np.percentile(runs, 2.5, axis=0) - widen
         high = np.percentile(runs, 97.5, axis=0) + widen
@@ -211,7 +247,13 @@ def predict(
             lo, hi = np.array(rec.x), np.array(rec.x)
             lo[start:], hi[start:] = low[i, :used], high[i, :used]
             inside = (seen >= lo[start + 1 :]) & (seen <= hi[start + 1 :])
-            band = {"low": lo, "high": hi, "coverage": float(inside[np.isfinite(seen)].mean())}
+            band = {
+                "low": lo,
+                "high": hi,
+                "coverage": float(inside[np.isfinite(seen)].mean()),
+                "band_draws": samples,
+                "band_unstable": unstable,
+            }
         out.append(
             Prediction(
                 name=target.names[i],
@@ -231,6 +273,22 @@ def predict(
             )
         )
     return out
+
+
+class BandWarning(UserWarning):
+    """A prediction band drawn from fewer stable parameter sets than `MIN_BAND_DRAWS`."""
+
+
+def _refuse_blowup(simulated: np.ndarray, target: RecordingTarget, i: int, start: int) -> None:
+    """A BlowUpError naming the recording and frame where `simulated` (F, M, 3) of recording `i`
+    stops being finite: a blown-up prediction is never written as markers not seen."""
+    bad = ~np.isfinite(simulated).all(axis=(1, 2))
+    if bad.any():
+        frame = start + int(np.argmax(bad))
+        raise BlowUpError(
+            f"{target.names[i]}: the prediction blew up at frame {frame} (the values are past the time step's "
+            "stability limit there, or a driven marker jumps); check the driven markers, or fit with a smaller dt"
+        )
 
 
 def _norm(error):

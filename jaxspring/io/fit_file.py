@@ -106,7 +106,15 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
             raise FileFormatError(f"{path}: not a jaxspring fit file; choose another --out")
         saved = json.loads(f.attrs["config"])
         if saved != json.loads(json.dumps(config, sort_keys=True)):
-            changed = sorted(k for k in set(saved) | set(config) if saved.get(k) != config.get(k))
+            config = json.loads(json.dumps(config, sort_keys=True))
+            changed = []
+            for k in sorted(set(saved) | set(config)):
+                old, new = saved.get(k), config.get(k)
+                if old != new and isinstance(old, dict) and isinstance(new, dict):  # name the files that changed
+                    parts = sorted(n for n in set(old) | set(new) if old.get(n) != new.get(n))
+                    changed.append(f"{k} of {', '.join(parts)}")
+                elif old != new:
+                    changed.append(k)
             raise InputError(
                 "--resume",
                 f"{path} was written by a different fit (differs in {', '.join(changed)})",

@@ -77,13 +77,14 @@ class Recording:
         return np.isfinite(self.x).all(axis=-1)
 
 
-def save_recording(path, recording: Recording, bands=None) -> None:
+def save_recording(path, recording: Recording, bands=None, writer: str | None = None) -> None:
     """Write a recording to an HDF5 file (docs/file-formats.md), atomically.
 
     The file holds /t float64 (F,), /x float64 (F, M, 3) with NaN where a marker was
     not seen, and /markers (M,) names; root attributes format="jaxspring.recording",
     format_version=1. `bands` (low, high), each (F, M, 3), adds a prediction's 95% band
-    as /band_low and /band_high (readers of recordings ignore them).
+    as /band_low and /band_high (readers of recordings ignore them); `writer` names the
+    program that wrote it (root attribute `writer`; `jaxspring predict` replaces only its own files).
 
     Example:
         >>> js.save_recording("take1.h5", js.Recording(t=t, x=x))
@@ -97,6 +98,8 @@ def save_recording(path, recording: Recording, bands=None) -> None:
         )
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(format=RECORDING_FORMAT, format_version=FORMAT_VERSION)
+        if writer is not None:
+            f.attrs["writer"] = writer
         f.create_dataset("t", data=recording.t)
         f.create_dataset("x", data=recording.x)
         f.create_dataset("markers", data=list(recording.markers), dtype=h5py.string_dtype("utf-8"))
