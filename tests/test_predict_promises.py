@@ -166,3 +166,56 @@ def test_evaluate_recordings_are_checked_before_the_fit(fitted, tmp_path, capsys
     error = _refused(["fit", str(experiment), "--out", str(out), "--quiet"], capsys, "wrong.h5")
     assert "evaluate" in error
     assert not out.exists() and not out.with_suffix(".png").exists()
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"smooth": 20}, "window of 41 frames is longer than take0 (30 frames)"),
+        ({"smooth": -1}, "smooth: must be >= 0"),
+        ({"smooth": 2.5}, "whole number"),
+        ({"start": 1.5}, "whole number"),
+        ({"driven": [0, 3, 3]}, "names particle 3 twice"),
+        ({"driven": [0, 1, 2, 3], "fit_start": True}, "no start state is left to fit"),
+        ({"driven": [0, 1, 2, 3], "fit_driven": True}, "fit_driven"),
+    ],
+)
+def test_settings_that_cannot_mean_anything_are_refused(change, words):
+    scene = js.scene_from_dict(ROPE)
+    recordings = _recordings(2)
+    settings = {"driven": [0, 3], "start": 1, "smooth": 0, **change}
+    with pytest.raises(js.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        js.recording_target(scene, recordings, names=("take0", "take1"), **settings)
+
+
+def test_times_in_nanoseconds_are_refused_in_one_line(tmp_path, capsys):
+    scene = js.scene_from_dict(ROPE)
+    rec = _recordings(1)[0]
+    nanoseconds = js.Recording(t=1.7e18 + rec.t * 1e9, x=rec.x)
+    with pytest.raises(js.InputError, match="give frame times in seconds"):
+        js.recording_target(scene, [nanoseconds], driven=[0, 3])
+    js.save_recording(tmp_path / "take0.h5", nanoseconds)
+    (tmp_path / "rope.toml").write_text(SCENE_TOML)
+    (tmp_path / "exp.toml").write_text(EXPERIMENT)
+    _refused(["fit", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "x.fit.h5")], capsys, "take0 spans")
+    assert not (tmp_path / "x.fit.h5").exists()
+
+
+def test_markers_are_matched_by_name_not_by_column():
+    """The same takes with their marker columns shuffled give the same target and prediction."""
+    scene = js.scene_from_dict(ROPE)
+    names = ("left", "a", "b", "right")
+    named = [js.Recording(t=r.t, x=r.x, markers=names) for r in _recordings(2)]
+    order = [2, 3, 0, 1]
+    shuffled = [js.Recording(t=r.t, x=r.x[:, order], markers=tuple(names[k] for k in order)) for r in named]
+    plain = js.recording_target(scene, named, driven=[0, 3])
+    mixed = js.recording_target(scene, [named[0], shuffled[1]], driven=[0, 3])
+    np.testing.assert_array_equal(mixed.x, plain.x)
+    assert mixed.marker_names == names
+    first = js.predict(scene, {"ks.stretch": 400.0}, [named[1]], driven=[0, 3], marker_names=names)[0]
+    again = js.predict(scene, {"ks.stretch": 400.0}, [shuffled[1]], driven=[0, 3], marker_names=names)[0]
+    np.testing.assert_array_equal(again.x, first.x)
+    assert again.marker_names == names
+    other = js.Recording(t=named[1].t, x=named[1].x, markers=("left", "a", "c", "right"))
+    with pytest.raises(js.InputError, match="names its markers left, a, c, right; expected left, a, b, right"):
+        js.recording_target(scene, [named[0], other], driven=[0, 3])

@@ -166,6 +166,7 @@ def command(args):
             "driven": [int(d) for d in observations.driven],
             "start": observations.start,
             "smooth": experiment.smooth,
+            "marker_names": list(observations.marker_names),
         }
     for path in (out, plot):
         check_output(path, inputs)

@@ -96,6 +96,7 @@ def command(args):
             covariance=fitted["covariance"],
             noise_std=fitted["noise_std"],
             samples=args.bands,
+            marker_names=info.get("marker_names"),
         )
     for warning in caught:
         if issubclass(warning.category, BandWarning):
@@ -104,7 +105,7 @@ def command(args):
     for path, rec, p in zip(outputs, recordings, predictions):
         save_recording(
             path,
-            type(rec)(t=rec.t, x=p.x, markers=rec.markers),
+            type(rec)(t=rec.t, x=p.x, markers=p.marker_names),
             bands=(p.low, p.high) if args.bands else None,
             writer=WRITER,
         )

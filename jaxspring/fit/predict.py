@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import BlowUpError, InputError
+from ..io.recording import matched_by_name
 from ..resources import check_memory
 from .identifiability import unique_names
 from .recording_loss import carriers, markers_simulated, target_data
@@ -176,19 +177,24 @@ def predict(
     noise_std: float = 0.0,
     samples: int | None = None,
     seed: int = 0,
+    marker_names=None,
 ) -> list[Prediction]:
     """Predict `recordings` with the fitted `values`, from their `start` frames, driven
     particles as recorded; with `samples` > 0 and the fit's `covariance` of the log values
     (a dict {"names": labels, "matrix": (P, P)}, see `Identifiability.covariance`), a 95%
     band from that many parameter sets (default 64 when a covariance is given) drawn from it
-    and run as one batch, widened by +-1.96 `noise_std` (the observation noise).
+    and run as one batch, widened by +-1.96 `noise_std` (the observation noise). Markers are
+    matched by name to `marker_names` (the fit's; see `recording_target`) where the recordings
+    name them. A prediction that blows up is a BlowUpError; band draws that blow up are left
+    out of the band and counted (`Prediction.band_unstable`).
 
     Example:
         >>> result = js.fit(scene, target, names)
         >>> out = js.predict(scene, result.final, [js.load_recording("held_out.h5")], driven=[0, 11])
         >>> out[0].mean_coordinate_error, out[0].mean_distance
     """
-    recordings = list(recordings)
+    names = tuple(names or (f"recording {i}" for i in range(len(recordings))))
+    recordings = matched_by_name(list(recordings), names, marker_names)
     samples = (64 if covariance is not None else 0) if samples is None else int(samples)
     if samples and covariance is not None and samples < MIN_BAND_DRAWS:
         raise InputError(

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
+from ..io.recording import matched_by_name
 from ..sim.checks import particle_indices
 from ..sim.driven import steps_to_reach
 from ..sim.state import State
@@ -51,6 +52,8 @@ class RecordingTarget:
         fit_start: fit each recording's start state (see `recording_target`).
         fit_driven: fit each recording's driven paths too (see `recording_target`).
         free: particles neither pinned nor driven, bool (N,).
+        marker_names: the markers' names, in the order of `markers` (the recordings' columns
+            are matched to them by name).
     """
 
     names: tuple
@@ -73,6 +76,7 @@ class RecordingTarget:
     fit_start: bool = False
     free: np.ndarray | None = None
     fit_driven: bool = False
+    marker_names: tuple = ()
 
     @property
     def frame_count(self) -> int:
@@ -119,8 +123,13 @@ def recording_target(
     names=None,
     fit_start=False,
     fit_driven=False,
+    marker_names=None,
 ):
     """Prepare `recordings` (a list of `Recording`) of `scene` as one fit target.
+
+    Markers are matched by name where the recordings name them (not the default m0, m1, ...):
+    every recording's markers are taken in the order of `marker_names` (default: the first
+    recording's), whatever the order of its columns; a recording without one of them is refused.
 
     Args:
         markers: particle carrying marker k (default: particle k).
@@ -150,10 +159,15 @@ def recording_target(
     names = tuple(names or (f"recording {i}" for i in range(len(recordings))))
     if not recordings:
         raise InputError("recordings", "none given", "give at least one recording file")
-    counts = {r.marker_count for r in recordings}
-    if len(counts) != 1:
-        raise InputError("recordings", f"differ in marker count ({sorted(counts)})", "fit recordings of one setup")
-    (count,) = counts
+    count = recordings[0].marker_count
+    for name, rec in zip(names, recordings):
+        if rec.marker_count != count:
+            raise InputError(
+                "recordings",
+                f"{name} has {rec.marker_count} markers but {names[0]} has {count} (differ in marker count)",
+                "fit recordings of one setup",
+            )
+    recordings = matched_by_name(recordings, names, marker_names)
     model = scene.model
     n = model.particle_count
     markers = (
@@ -170,6 +184,9 @@ def recording_target(
     if np.unique(markers).size != markers.size:
         raise InputError("markers", "puts two markers on one particle", "give each marker its own particle")
     driven = particle_indices("driven", driven, n, "give indices of the scene's particles")
+    if np.unique(driven).size != driven.size:
+        twice = next(int(p) for k, p in enumerate(driven) if p in driven[:k])
+        raise InputError("driven", f"names particle {twice} twice", "give each driven particle once")
     carried = [int(np.nonzero(markers == p)[0][0]) if p in markers else -1 for p in driven]
     if -1 in carried:
         raise InputError(
@@ -181,13 +198,29 @@ def recording_target(
         raise InputError("loss", f"unknown loss {loss!r}", f"use one of {', '.join(LOSSES)}")
     if not (np.isfinite(huber_scale) and huber_scale > 0):
         raise InputError("huber_scale", "must be a positive length [m]", "set e.g. huber_scale = 0.002")
-    start = int(start)
+    start, smooth = _whole("start", start), _whole("smooth", smooth)
+    if smooth < 0:
+        raise InputError("smooth", f"must be >= 0, got {smooth}", "give 0 (no smoothing) or a half-window such as 5")
     for name, rec in zip(names, recordings):
         if not 0 <= start < rec.frame_count - 1:
             raise InputError(
                 "start",
                 f"frame {start} is not before the last frame of {name} ({rec.frame_count} frames)",
                 "start earlier",
+            )
+        if 2 * smooth + 1 > rec.frame_count:
+            raise InputError(
+                "smooth",
+                f"a window of {2 * smooth + 1} frames is longer than {name} ({rec.frame_count} frames)",
+                "smooth over fewer frames (e.g. smooth = 5)",
+            )
+        steps = (rec.t[-1] - rec.t[start]) / model.dt
+        if steps > MAX_STEPS:
+            raise InputError(
+                "recordings",
+                f"{name} spans {rec.t[-1] - rec.t[start]:.3g} s from its start frame, {steps:.3g} time steps of "
+                f"{model.dt:g} s",
+                "give frame times in seconds (convert nanoseconds or milliseconds), or a larger dt",
             )
     frames = max(r.frame_count for r in recordings) - start
     dtype = np.dtype(model.mass.dtype)
@@ -211,6 +244,12 @@ def recording_target(
         filled[i, :used] = np.concatenate([positions, velocities], axis=-1)[start:]
         filled[i, used:] = np.concatenate([positions[-1], 0.0 * velocities[-1]], axis=-1)
         states_x[i, used:] = states_x[i, used - 1]
+    free = ~(np.asarray(model.pinned, dtype=bool) | np.isin(np.arange(n), driven))
+    if (fit_start or fit_driven) and not free.any():
+        field = "fit_driven" if fit_driven else "fit_start"
+        raise InputError(
+            field, "every particle is pinned or driven: no start state is left to fit", f"set {field} = false"
+        )
     return RecordingTarget(
         names=names,
         markers=markers,
@@ -228,8 +267,20 @@ def recording_target(
         smooth=int(smooth),
         fit_start=bool(fit_start or fit_driven),
         fit_driven=bool(fit_driven),
-        free=~(np.asarray(model.pinned, dtype=bool) | np.isin(np.arange(n), driven)),
+        free=free,
+        marker_names=tuple(recordings[0].markers),
     )
+
+
+MAX_STEPS = 2**31 - 1
+"""Most time steps a recording may span from its start frame (a step count is a 32-bit integer)."""
+
+
+def _whole(field: str, value) -> int:
+    """`value` as an int; an InputError for a bool or a number with a fraction."""
+    if isinstance(value, bool) or not float(value).is_integer():
+        raise InputError(field, f"must be a whole number of frames, got {value!r}", f"give e.g. {field} = 5")
+    return int(value)
 
 
 def _smoothed(t, x, seen, half: int):

@@ -350,3 +350,34 @@ def _check_markers(markers, marker_count: int) -> tuple[str, ...]:
     if duplicate is not None:
         raise InputError("markers", f"name {duplicate!r} is used twice", "give each marker its own name")
     return markers
+
+
+def _unnamed(markers) -> bool:
+    """Whether `markers` are the default names a recording gets without any (m0, m1, ...)."""
+    return tuple(markers) == tuple(f"m{k}" for k in range(len(markers)))
+
+
+def matched_by_name(recordings, names, order=None) -> list:
+    """`recordings` with their marker columns in the order of the names `order` (default: the
+    first named recording's), where the recordings name their markers; unnamed ones as given."""
+    named = [r for r in recordings if not _unnamed(r.markers)]
+    if order is None or _unnamed(order):
+        if not named:
+            return recordings
+        order = named[0].markers
+    order = tuple(order)
+    out = []
+    for name, rec in zip(names, recordings):
+        if _unnamed(rec.markers) or tuple(rec.markers) == order:
+            out.append(rec)
+            continue
+        missing = [m for m in order if m not in rec.markers]
+        if missing or len(rec.markers) != len(order):
+            raise InputError(
+                "recordings",
+                f"{name} names its markers {', '.join(rec.markers)}; expected {', '.join(order)}",
+                "give recordings of one marker set (matched by name)",
+            )
+        columns = [rec.markers.index(m) for m in order]
+        out.append(type(rec)(t=rec.t, x=np.asarray(rec.x)[:, columns], markers=order))
+    return out
