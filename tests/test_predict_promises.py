@@ -219,3 +219,36 @@ def test_markers_are_matched_by_name_not_by_column():
     other = js.Recording(t=named[1].t, x=named[1].x, markers=("left", "a", "c", "right"))
     with pytest.raises(js.InputError, match="names its markers left, a, c, right; expected left, a, b, right"):
         js.recording_target(scene, [named[0], other], driven=[0, 3])
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"driven": (0, 4)}, "marker 4 is outside -4..3"),
+        ({"driven": (0, 1.5)}, "whole number"),
+        ({"driven": (0, 3, -1)}, "names marker 3 twice"),
+        ({"driven": (True, 3)}, "whole number"),
+        ({"subdivide": 2.5}, "whole number"),
+        ({"reference": (5, 0)}, "recording 5 is outside 0..1"),
+        ({"reference": (0, 99)}, "frame 99 is outside 0..29"),
+        ({"reference": (0, -1)}, "frame -1 is outside"),
+        ({"reference": 3}, "give (recording, frame)"),
+    ],
+)
+def test_cable_scene_checks_every_index_up_front(change, words):
+    recordings = _recordings(2)
+    with pytest.raises(js.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        js.cable_scene(recordings, **{"driven": (0, 3), **change})
+
+
+def test_cable_scene_refuses_coincident_markers_and_quotes_any_name():
+    recordings = _recordings(2)
+    stuck = [js.Recording(t=r.t, x=np.concatenate([r.x[:, :2], r.x[:, 1:]], axis=1)) for r in recordings]
+    with pytest.raises(js.InputError, match="markers 1 and 2 are at one place"):
+        js.cable_scene(stuck, driven=(0, -1))
+    name = 'two\nlines "quoted" \\ and a tab\t'
+    cable = js.cable_scene(recordings, driven=(0, -1), name=name)
+    text = cable.toml()
+    scene = js.scene_from_dict(__import__("tomllib").loads(text))
+    assert scene.name == name
+    np.testing.assert_allclose(np.asarray(scene.state.x), np.asarray(cable.scene["particles"]["x"]), rtol=1e-15)

@@ -108,15 +108,23 @@ def cable_scene(
         raise InputError("recordings", "have different marker counts", "give recordings of one marker set")
     if count < 3:
         raise InputError("recordings", f"have {count} markers", "a cable needs at least 3 markers")
-    if int(subdivide) < 1 or int(groups) < 1:
+    subdivide, groups = _whole("subdivide", subdivide), _whole("groups", groups)
+    if subdivide < 1 or groups < 1:
         raise InputError("subdivide/groups", "must be at least 1", "give positive integers")
     if rest not in ("data", "straight"):
         raise InputError("rest", f"is {rest!r}", 'give "data" or "straight"')
-    driven_markers = sorted({int(d) % count for d in driven})
+    driven_markers = _driven_markers(driven, count)
     chords = np.concatenate([np.linalg.norm(np.diff(r.x, axis=1), axis=-1) for r in recordings])
     if not np.isfinite(chords).any(axis=0).all():
         raise InputError("recordings", "two neighbouring markers are never seen together", "check the marker order")
     median = np.nanmedian(chords, axis=0)  # (M - 1,)
+    if not (median > 0).all():
+        k = int(np.argmin(median > 0))
+        raise InputError(
+            "recordings",
+            f"markers {k} and {k + 1} are at one place in most frames (median distance 0)",
+            "give each marker its own place on the cable (check the tracking)",
+        )
     splits = [1 if (k in driven_markers and k + 1 in driven_markers) else int(subdivide) for k in range(count - 1)]
     markers = np.concatenate([[0], np.cumsum(splits)]).astype(int)
     if rest == "straight":
@@ -124,8 +132,24 @@ def cable_scene(
         x[:, 0] = np.concatenate([[0.0], np.cumsum(np.repeat(median / splits, splits))])
         stretch = np.ones(x.shape[0] - 1)
     else:
-        rec_index, frame = reference
+        try:
+            rec_index, frame = reference
+        except (TypeError, ValueError):
+            raise InputError("reference", f"is {reference!r}", "give (recording, frame), e.g. (0, 0)") from None
+        rec_index, frame = _whole("reference", rec_index), _whole("reference", frame)
+        if not 0 <= rec_index < len(recordings):
+            raise InputError(
+                "reference",
+                f"recording {rec_index} is outside 0..{len(recordings) - 1}",
+                "give the index of one of the recordings",
+            )
         shape = _reference_shape(recordings[rec_index], frame)
+        if not (np.linalg.norm(np.diff(shape, axis=0), axis=-1) > 0).all():
+            raise InputError(
+                "reference",
+                f"two neighbouring markers are at one place in frame {frame}",
+                'choose another reference frame, or rest = "straight"',
+            )
         x = _spline(shape, splits)
         # each interval's rest chord is the median seen distance, not this one frame's
         stretch = np.repeat(median / np.linalg.norm(np.diff(shape, axis=0), axis=-1), splits)
@@ -175,6 +199,34 @@ def cable_scene(
     return CableModel(scene=scene, markers=markers.tolist(), driven=[int(markers[k]) for k in driven_markers])
 
 
+def _whole(field: str, value) -> int:
+    """`value` as an int; an InputError for a bool, a non-number or a number with a fraction."""
+    try:
+        whole = not isinstance(value, bool) and float(value).is_integer()
+    except (TypeError, ValueError):
+        whole = False
+    if not whole:
+        raise InputError(field, f"must be a whole number, got {value!r}", "give an integer")
+    return int(value)
+
+
+def _driven_markers(driven, count: int) -> list[int]:
+    """The driven marker indices (negative ones from the end), sorted; each problem an InputError."""
+    if isinstance(driven, (str, bytes)) or np.ndim(driven) != 1:
+        raise InputError("driven", f"is {driven!r}", "give a list of marker indices, e.g. [0, 1, -2, -1]")
+    out = []
+    for d in driven:
+        k = _whole("driven", d)
+        if not -count <= k < count:
+            raise InputError(
+                "driven", f"marker {k} is outside -{count}..{count - 1}", f"give indices of the {count} markers"
+            )
+        if k % count in out:
+            raise InputError("driven", f"names marker {k % count} twice", "give each driven marker once")
+        out.append(k % count)
+    return sorted(out)
+
+
 def _group_of(middle, first, last, groups):
     """Segment group of each spring by its middle's place between particles first and last."""
     if groups == 1:
@@ -186,7 +238,7 @@ def _group_of(middle, first, last, groups):
 def _reference_shape(recording, frame):
     """The markers at `frame`, lost ones filled from the nearest frame where they were seen, (M, 3)."""
     x = np.array(recording.x)
-    if not 0 <= frame < x.shape[0]:
+    if not 0 <= frame < x.shape[0]:  # a negative frame is refused, not counted from the end
         raise InputError("reference", f"frame {frame} is outside 0..{x.shape[0] - 1}", "give a frame of the recording")
     shape = x[frame].copy()
     for k in np.flatnonzero(~np.isfinite(shape).all(axis=-1)):
@@ -223,4 +275,14 @@ def _catmull_rom(p0, p1, p2, p3, u):
 
 
 def _q(text: str) -> str:
-    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    """`text` as a TOML basic string: backslashes, quotes and control characters (a line
+    break in a name) escaped, so the scene file parses back to the same text."""
+    out = []
+    for ch in str(text):
+        if ch in ('"', "\\"):
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
