@@ -184,8 +184,103 @@ def test_command_lines_parse_or_fail_in_one_line(argv):
         assert exc.code in (0, 2), exc.code
 
 
+INDICES = st.one_of(
+    st.integers(min_value=-(2**40), max_value=2**40),
+    st.integers(min_value=-8, max_value=8),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.text(max_size=3),
+)
+INDEX_LISTS = st.one_of(st.lists(INDICES, max_size=5), INDICES)
+SIZES = st.one_of(  # small, or far too large (refused before anything is built), or not a count
+    st.integers(min_value=-3, max_value=8),
+    st.integers(min_value=10**5, max_value=2**62),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.text(max_size=3),
+)
+TAKES = [
+    js.Recording(
+        t=np.arange(12) * 0.01,
+        x=np.stack([np.linspace(0.0, 0.3, 4), np.zeros(4), np.zeros(4)], -1)[None]
+        + 1e-3 * np.arange(12)[:, None, None],
+        markers=("a", "b", "c", "d"),
+    ),
+    js.Recording(
+        t=np.arange(9) * 0.01,
+        x=np.stack([np.linspace(0.3, 0.0, 4), np.zeros(4), np.zeros(4)], -1)[None] + 1e-3 * np.arange(9)[:, None, None],
+        markers=("d", "c", "b", "a"),
+    ),
+]
+ROPE = {
+    "name": "rope",
+    "dt": 0.002,
+    "physics": {"ks": {"stretch": 300.0}, "kd": {"stretch": 0.5}},
+    "particles": {"x": [[0.1 * i, 0.0, 0.0] for i in range(4)], "mass": 0.03},
+    "springs": [{"name": "stretch", "pairs": [[0, 1], [1, 2], [2, 3]]}],
+}
+
+
+@pytest.fixture(scope="module")
+def rope():
+    return js.scene_from_dict(ROPE)
+
+
+@FAST
+@given(
+    st.fixed_dictionaries(
+        {},
+        optional={
+            "markers": INDEX_LISTS,
+            "driven": INDEX_LISTS,
+            "start": INDICES,
+            "smooth": INDICES,
+            "loss": st.sampled_from(["mse", "l1", "huber", "l3", ""]),
+            "huber_scale": st.floats(allow_nan=True, allow_infinity=True),
+            "fit_start": st.booleans(),
+            "fit_driven": st.booleans(),
+            "marker_names": st.one_of(st.none(), st.permutations(["a", "b", "c", "d"]), st.lists(st.text(max_size=2))),
+        },
+    ),
+    st.sampled_from([TAKES, TAKES[:1], TAKES[1:]]),
+)
+def test_recording_targets_with_generated_settings(rope, settings_, takes):
+    scene = rope
+    target = _contract(lambda: js.recording_target(scene, takes, **settings_), "recording targets")
+    if target is not None:  # a valid target: every index in range, each driven particle once, no NaN state
+        assert np.all((0 <= target.markers) & (target.markers < 4)) and len(set(target.driven)) == len(target.driven)
+        assert np.isfinite(target.states_x).all() and np.isfinite(target.filled).all()
+        assert 2 * target.smooth + 1 <= min(r.frame_count for r in takes)
+
+
+@FAST
+@given(
+    st.fixed_dictionaries(
+        {},
+        optional={
+            "driven": INDEX_LISTS,
+            "subdivide": SIZES,
+            "groups": SIZES,
+            "reference": st.one_of(st.tuples(INDICES, INDICES), INDICES),
+            "rest": st.sampled_from(["data", "straight", "bent"]),
+            "bending": st.booleans(),
+            "name": st.text(max_size=6),
+        },
+    )
+)
+def test_cable_scenes_with_generated_settings(settings_):
+    settings_ = {"driven": (0, -1), **settings_}
+    cable = _contract(lambda: js.cable_scene(TAKES, **settings_), "cable scenes")
+    if cable is not None:  # a valid cable: its scene file parses back, every number finite
+        import tomllib
+
+        scene = _contract(lambda: js.scene_from_dict(tomllib.loads(cable.toml())), "cable scenes")
+        assert scene is not None
+        assert np.isfinite(np.asarray(scene.state.x)).all() and np.isfinite(np.asarray(scene.model.mass)).all()
+
+
 def test_zz_case_counts(capsys):
-    """Printed in the test log (-s or the captured output of a failure): at least 1,000 cases."""
+    """Printed in the test log (-s or the captured output of a failure): at least 1,500 cases."""
     with capsys.disabled():
         print(f"\nfuzz cases: {COUNTS} (total {sum(COUNTS.values())})")
-    assert sum(COUNTS.values()) >= 1000
+    assert sum(COUNTS.values()) >= 1500

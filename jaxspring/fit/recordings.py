@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.recording import matched_by_name
-from ..sim.checks import particle_indices
+from ..sim.checks import particle_indices, whole_number
 from ..sim.driven import steps_to_reach
 from ..sim.state import State
 
@@ -198,7 +198,7 @@ def recording_target(
         raise InputError("loss", f"unknown loss {loss!r}", f"use one of {', '.join(LOSSES)}")
     if not (np.isfinite(huber_scale) and huber_scale > 0):
         raise InputError("huber_scale", "must be a positive length [m]", "set e.g. huber_scale = 0.002")
-    start, smooth = _whole("start", start), _whole("smooth", smooth)
+    start, smooth = whole_number("start", start), whole_number("smooth", smooth)
     if smooth < 0:
         raise InputError("smooth", f"must be >= 0, got {smooth}", "give 0 (no smoothing) or a half-window such as 5")
     for name, rec in zip(names, recordings):
@@ -274,13 +274,6 @@ def recording_target(
 
 MAX_STEPS = 2**31 - 1
 """Most time steps a recording may span from its start frame (a step count is a 32-bit integer)."""
-
-
-def _whole(field: str, value) -> int:
-    """`value` as an int; an InputError for a bool or a number with a fraction."""
-    if isinstance(value, bool) or not float(value).is_integer():
-        raise InputError(field, f"must be a whole number of frames, got {value!r}", f"give e.g. {field} = 5")
-    return int(value)
 
 
 def _smoothed(t, x, seen, half: int):

@@ -25,6 +25,10 @@ import dataclasses
 import numpy as np
 
 from ..errors import InputError
+from ..sim.checks import whole_number
+
+MAX_PARTICLES = 100_000
+"""Most particles a cable scene is built with (`subdivide` beyond that is refused, not built)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,9 +112,19 @@ def cable_scene(
         raise InputError("recordings", "have different marker counts", "give recordings of one marker set")
     if count < 3:
         raise InputError("recordings", f"have {count} markers", "a cable needs at least 3 markers")
-    subdivide, groups = _whole("subdivide", subdivide), _whole("groups", groups)
+    subdivide, groups = whole_number("subdivide", subdivide), whole_number("groups", groups)
     if subdivide < 1 or groups < 1:
         raise InputError("subdivide/groups", "must be at least 1", "give positive integers")
+    if (count - 1) * subdivide + 1 > MAX_PARTICLES:
+        raise InputError(
+            "subdivide",
+            f"{subdivide} particle intervals per marker interval make {(count - 1) * subdivide + 1} particles",
+            f"subdivide less (at most {MAX_PARTICLES} particles)",
+        )
+    if groups > (count - 1) * subdivide:
+        raise InputError(
+            "groups", f"{groups} groups for at most {(count - 1) * subdivide} springs", "give fewer segment groups"
+        )
     if rest not in ("data", "straight"):
         raise InputError("rest", f"is {rest!r}", 'give "data" or "straight"')
     driven_markers = _driven_markers(driven, count)
@@ -136,7 +150,7 @@ def cable_scene(
             rec_index, frame = reference
         except (TypeError, ValueError):
             raise InputError("reference", f"is {reference!r}", "give (recording, frame), e.g. (0, 0)") from None
-        rec_index, frame = _whole("reference", rec_index), _whole("reference", frame)
+        rec_index, frame = whole_number("reference", rec_index), whole_number("reference", frame)
         if not 0 <= rec_index < len(recordings):
             raise InputError(
                 "reference",
@@ -199,24 +213,13 @@ def cable_scene(
     return CableModel(scene=scene, markers=markers.tolist(), driven=[int(markers[k]) for k in driven_markers])
 
 
-def _whole(field: str, value) -> int:
-    """`value` as an int; an InputError for a bool, a non-number or a number with a fraction."""
-    try:
-        whole = not isinstance(value, bool) and float(value).is_integer()
-    except (TypeError, ValueError):
-        whole = False
-    if not whole:
-        raise InputError(field, f"must be a whole number, got {value!r}", "give an integer")
-    return int(value)
-
-
 def _driven_markers(driven, count: int) -> list[int]:
     """The driven marker indices (negative ones from the end), sorted; each problem an InputError."""
     if isinstance(driven, (str, bytes)) or np.ndim(driven) != 1:
         raise InputError("driven", f"is {driven!r}", "give a list of marker indices, e.g. [0, 1, -2, -1]")
     out = []
     for d in driven:
-        k = _whole("driven", d)
+        k = whole_number("driven", d)
         if not -count <= k < count:
             raise InputError(
                 "driven", f"marker {k} is outside -{count}..{count - 1}", f"give indices of the {count} markers"

@@ -172,3 +172,19 @@ def flag_mask(name, value, count, default):
     mask = np.zeros(count, dtype=bool)
     mask[idx] = True
     return mask
+
+
+def whole_number(field: str, value) -> int:
+    """`value` as an int; an InputError for a bool, a non-number or a number with a fraction.
+
+    Example:
+        >>> whole_number("start", 5.0)
+        5
+    """
+    try:
+        whole = not isinstance(value, (bool, np.bool_)) and float(value).is_integer()
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
+        raise InputError(field, f"must be a whole number, got {value!r}", f"give an integer {field}")
+    return int(value)
