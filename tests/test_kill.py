@@ -15,7 +15,7 @@ import pytest
 
 import jaxspring as js
 
-KILLS = 6  # each kill is a process start-up: 6 of each keep the file under 2 minutes of CI
+KILLS = 6  # each kill is a process start-up: 6 of each (3 for predict) keep the file near 2 minutes of CI
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
 
 
@@ -114,3 +114,36 @@ def _final(path: Path) -> dict:
     with h5py.File(path) as f:
         assert bool(f.attrs["done"])
         return {k: json.dumps(np.asarray(v).tolist()) for k, v in f["fit/final"].attrs.items()}
+
+
+def test_predict_killed_at_random_moments_leaves_only_complete_predictions(tmp_path, capsys):
+    """`predict` killed anywhere leaves each output absent or complete (never a half file, never
+    a stray temporary one), and run again into the same folder it replaces only its own files."""
+    from test_predict_promises import EXPERIMENT, SCENE_TOML, _recordings
+
+    from jaxspring.cli import main
+
+    rng = np.random.default_rng(11)
+    takes = _recordings(3)
+    for i, rec in enumerate(takes):
+        js.save_recording(tmp_path / (f"held{i}.h5" if i else "take0.h5"), rec)
+    (tmp_path / "rope.toml").write_text(SCENE_TOML)
+    (tmp_path / "exp.toml").write_text(EXPERIMENT)
+    assert main(["fit", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "rope.fit.h5"), "--quiet"]) == 0
+    inputs = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    predict = ["predict", "rope.fit.h5", "held1.h5", "held2.h5", "--out-dir", "pred", "--bands", "16", "--quiet"]
+    duration = _timed(*predict, cwd=tmp_path)
+    expected = {name: js.load_recording(tmp_path / "pred" / name).x for name in ("held1.h5", "held2.h5")}
+    kills = 0
+    while kills < KILLS // 2:
+        killed, ended = _kill_after(_start(*predict, cwd=tmp_path), rng.uniform(0.3, 1.0) * duration)
+        kills += killed
+        duration = duration if killed else min(duration, ended)
+        for path in (tmp_path / "pred").iterdir():  # every file there is complete
+            assert ".tmp" not in path.name, path.name
+            if path.suffix == ".h5":
+                np.testing.assert_array_equal(js.load_recording(path).x, expected[path.name])
+    _timed(*predict, cwd=tmp_path)  # its own files it replaces
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == inputs
+    with capsys.disabled():
+        print(f"\nkill test, predict: {kills} kills, only complete predictions left")
