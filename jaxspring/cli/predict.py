@@ -121,9 +121,9 @@ def command(args):
         print_errors("recording", predictions)
     if args.bands:
         unstable = predictions[0].band_unstable
-        drawn = f"from {args.bands - unstable} of {args.bands} parameter sets"
-        drawn += f" ({unstable} blew up and were left out)" if unstable else ""
-        print(f"95% band {drawn}: it holds {100 * summary.coverage:.1f}% of the seen marker coordinates")
+        drawn = f"{args.bands - unstable} of {args.bands} parameter sets"
+        drawn += f"; {unstable} blew up and were left out" if unstable else ""
+        print(f"95% band holds {100 * summary.coverage:.1f}% of the seen marker coordinates ({drawn})")
     if not args.no_plot:
         plot_error_summary(summary, predictions, out_dir / "errors.png", writer=WRITER)
     print(f"wrote {len(outputs)} predictions to {out_dir}", file=sys.stderr if args.quiet else sys.stdout)
