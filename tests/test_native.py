@@ -60,6 +60,14 @@ def relative(a, b):
     return float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300))
 
 
+@jax.jit
+def force_and_vjp(model, params, x, v, ct):
+    """The force at (x, v) and the VJP of ct through it wrt x, v and params, as one compiled
+    program (op by op, the pure-JAX force alone compiles for seconds)."""
+    pull = jax.vjp(lambda x, v, p: model.force(p, x, v), x, v, params)[1]
+    return model.force(params, x, v), pull(ct)
+
+
 def test_forces_and_their_vjp_match(scenes):
     for name, model, params, state in cases(scenes):
         native = model.replace(backend="native", lattice=None)  # the spring kernel of any topology
@@ -67,27 +75,29 @@ def test_forces_and_their_vjp_match(scenes):
         x = state.x + 0.05 * jax.random.normal(key, state.x.shape)
         v = jax.random.normal(jax.random.PRNGKey(2), state.x.shape)
         plain = model.replace(lattice=None)
-        assert relative(native.force(params, x, v), plain.force(params, x, v)) < 1e-12, name
         ct = jax.random.normal(jax.random.PRNGKey(3), x.shape)
-        for a, b in zip(
-            jax.vjp(lambda x, v, p, m=native: m.force(p, x, v), x, v, params)[1](ct),
-            jax.vjp(lambda x, v, p, m=plain: m.force(p, x, v), x, v, params)[1](ct),
-        ):
+        f_native, vjp_native = force_and_vjp(native, params, x, v, ct)
+        f_plain, vjp_plain = force_and_vjp(plain, params, x, v, ct)
+        assert relative(f_native, f_plain) < 1e-12, name
+        for a, b in zip(vjp_native, vjp_plain):
             for la, lb in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
                 assert relative(la, lb) < 1e-12, name
+
+
+def fit_loss(p, s, m, target):
+    return jnp.mean((js.rollout(m, p, s, 60, 20).x - target) ** 2)
+
+
+fit_loss_grad = jax.jit(jax.grad(fit_loss, argnums=(0, 1)))  # one compiled program a model
 
 
 def test_rollouts_and_gradients_match(scenes):
     for name, model, params, state in cases(scenes):
         native = model.replace(backend="native")
         target = js.rollout(model, params.replace(ks=params.ks * 1.2), state, 60, 20).x
-
-        def loss(p, s, m, target=target):
-            return jnp.mean((js.rollout(m, p, s, 60, 20).x - target) ** 2)
-
         assert relative(js.rollout(native, params, state, 60, 20).x, js.rollout(model, params, state, 60, 20).x) < 1e-12
-        g_native = jax.grad(loss, argnums=(0, 1))(params, state, native)
-        g_plain = jax.grad(loss, argnums=(0, 1))(params, state, model)
+        g_native = fit_loss_grad(params, state, native, target)
+        g_plain = fit_loss_grad(params, state, model, target)
         leaves = list(zip(jax.tree_util.tree_leaves(g_native), jax.tree_util.tree_leaves(g_plain)))
         scale = max(float(np.max(np.abs(np.asarray(b)))) for _, b in leaves)
         for a, b in leaves:  # to 1e-11 of the largest gradient component (max-norm; round-off of reordered sums)
@@ -153,8 +163,9 @@ def lattice_case(scene, seed=0, drop=0.0):
 
 def assert_gradients_match(loss, native, plain, args, name):
     """Gradients of loss(model, *args) wrt args and the model's float leaves, to 1e-11 of the largest."""
-    g_native = jax.grad(loss, argnums=tuple(range(len(args) + 1)), allow_int=True)(native, *args)
-    g_plain = jax.grad(loss, argnums=tuple(range(len(args) + 1)), allow_int=True)(plain, *args)
+    grad = jax.jit(jax.grad(loss, argnums=tuple(range(len(args) + 1)), allow_int=True))  # one program a model
+    g_native = grad(native, *args)
+    g_plain = grad(plain, *args)
     pairs = []
     for a, b in zip(jax.tree_util.tree_leaves(g_native), jax.tree_util.tree_leaves(g_plain)):
         if np.asarray(b).dtype.kind == "f":
@@ -339,11 +350,13 @@ def test_lattice_gradients_of_only_what_is_asked_for(scenes):
         return model, params, state, loss
 
     cloth = problem(scenes["cloth"])
+    by_params = {}  # one compiled gradient wrt the params per problem, for either model and every params shape
     for model, params, _, loss in (cloth, problem(cloth_of_size((3, 3)).with_backend("jax"))):
         native = model.replace(backend="native")
+        grad = by_params[model.particle_count] = jax.jit(jax.grad(loss, argnums=1))
         kd_per_spring = params.kd * jnp.asarray(np.random.default_rng(5).uniform(0.5, 1.5, model.spring_count))
         for name, p in (("scalar ks, kd", params), ("scalar ks, kd per spring", params.replace(kd=kd_per_spring))):
-            a, b = jax.grad(loss, argnums=1)(native, p), jax.grad(loss, argnums=1)(model, p)
+            a, b = grad(native, p), grad(model, p)
             for key in ("ks", "kd", "cd"):
                 where = (model.particle_count, name, key)
                 assert jnp.shape(getattr(a, key)) == jnp.shape(getattr(b, key)), where
@@ -351,16 +364,17 @@ def test_lattice_gradients_of_only_what_is_asked_for(scenes):
     # float32 (16 lanes a vector): near the float64 gradient (measured 3e-4, 2e-5, 2e-6)
     model, params, state, loss = cloth
     native = model.replace(backend="native")
-    exact = jax.grad(lambda p: loss(model, p, state))(params)
-    approx = jax.grad(lambda p: loss(in_float32(native), in_float32(p), in_float32(state)))(params)
+    grad = by_params[model.particle_count]
+    exact = grad(model, params)  # the float64 pure-JAX gradient (compiled above)
+    approx = jax.jit(jax.grad(lambda p: loss(in_float32(native), in_float32(p), in_float32(state))))(params)
     for key, tolerance in (("ks", 2e-3), ("kd", 2e-4), ("cd", 2e-4)):
         assert relative(getattr(approx, key), getattr(exact, key)) < tolerance, key
     # the masses' cotangent without the rest lengths'
-    by_mass = lambda mass, m: loss(m.replace(mass=mass), params)  # noqa: E731
-    assert relative(jax.grad(by_mass)(model.mass, native), jax.grad(by_mass)(model.mass, model)) < 1e-11
-    # a batch of scalar ks: one lean backward per member
+    by_mass = jax.jit(jax.grad(lambda mass, m: loss(m.replace(mass=mass), params)))
+    assert relative(by_mass(model.mass, native), by_mass(model.mass, model)) < 1e-11
+    # a batch of scalar ks: one lean backward per member, each against the pure-JAX gradient wrt ks there
     ks = params.ks * jnp.array([0.8, 1.0, 1.3])
     by_ks = lambda k, m: loss(m, params.replace(ks=k))  # noqa: E731
-    batched = jax.vmap(jax.grad(by_ks), in_axes=(0, None))(ks, native)
+    batched = jax.jit(jax.vmap(jax.grad(by_ks), in_axes=(0, None)))(ks, native)
     for i in range(3):
-        assert relative(batched[i], jax.grad(by_ks)(ks[i], model)) < 1e-11
+        assert relative(batched[i], grad(model, params.replace(ks=ks[i])).ks) < 1e-11
