@@ -58,3 +58,29 @@ def inputs(float32_recording, tmp_path_factory):
         'scene = "c.toml"\n[target]\nsteps = 20\nsave_every = 10\n[fit]\nparams = ["ks"]\niterations = 2\n'
     )
     return folder
+
+
+# The heaviest test files first: two workers each take a file at a time (`--dist loadfile`),
+# so a heavy file started last would run alone at the end. Measured per-file worker time
+# on 2 cores, heaviest first; files not listed follow in their usual order.
+HEAVY_FIRST = [
+    "test_fitting.py",
+    "test_native.py",
+    "test_recordings_fit.py",
+    "test_noisy_recorded_states.py",
+    "test_integrators.py",
+    "test_hard_cases.py",
+    "test_free_shooting.py",
+    "test_cable.py",
+    "test_kill.py",
+    "test_horizon.py",
+    "test_notebooks.py",
+    "test_fast_paths.py",
+    "test_search.py",
+    "test_distributed.py",
+]
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(HEAVY_FIRST)))  # stable: order within a file kept

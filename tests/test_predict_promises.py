@@ -10,6 +10,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring.cli import main
+from jaxspring.io.recording import matched_by_name
 
 N = 4
 ROPE = {
@@ -104,7 +105,7 @@ def test_predict_never_replaces_a_file_it_did_not_write(fitted, tmp_path, capsys
 def test_a_prediction_that_blows_up_is_an_error_not_frames_unseen(fitted, tmp_path, capsys):
     held = js.load_recording(fitted / "held.h5")
     glitch = np.array(held.x)
-    glitch[12, 0] += 1e200  # a driven marker jumps by a distance no simulation survives
+    glitch[12, 0] += 1e9  # a driven marker jumps by a distance no simulation survives (drag blows up)
     js.save_recording(tmp_path / "glitch.h5", js.Recording(t=held.t, x=glitch))
     out = tmp_path / "out"
     _refused(
@@ -252,3 +253,90 @@ def test_cable_scene_refuses_coincident_markers_and_quotes_any_name():
     scene = js.scene_from_dict(__import__("tomllib").loads(text))
     assert scene.name == name
     np.testing.assert_allclose(np.asarray(scene.state.x), np.asarray(cable.scene["particles"]["x"]), rtol=1e-15)
+
+
+def test_marker_names_decide_the_columns_even_when_they_look_like_defaults():
+    rec = _recordings(1)[0]
+    swapped = js.Recording(t=rec.t, x=rec.x[:, [1, 0, 2, 3]], markers=("m1", "m0", "m2", "m3"))
+    (back,) = matched_by_name([swapped], ("s",), ("m0", "m1", "m2", "m3"))
+    np.testing.assert_array_equal(back.x, rec.x)
+    named = js.Recording(t=rec.t, x=rec.x, markers=("a", "b", "c", "d"))
+    (same,) = matched_by_name([named], ("n",), ("m0", "m1", "m2", "m3"))  # unnamed fit: by column
+    np.testing.assert_array_equal(same.x, rec.x)
+
+
+def test_a_band_spreads_a_value_the_data_do_not_determine_as_far_as_the_cap():
+    scene = js.scene_from_dict(ROPE)
+    held = _recordings(3)[2]
+    bands = {}
+    for label, variance in [("inf", np.inf), ("nan", np.nan), ("capped", 1e6)]:
+        covariance = {"names": ["ks.stretch"], "matrix": np.array([[variance]])}
+        (p,) = js.predict(scene, {"ks.stretch": 300.0}, [held], driven=[0, 3], covariance=covariance, samples=16)
+        bands[label] = p.high - p.low
+    assert np.max(bands["capped"]) > 1e-3  # a log spread of 1 moves the markers
+    np.testing.assert_array_equal(bands["inf"], bands["capped"])
+    np.testing.assert_array_equal(bands["nan"], bands["capped"])
+
+
+def test_a_fit_that_blows_up_is_an_error_and_leaves_no_file(fitted, tmp_path, capsys):
+    experiment = fitted / "unstable.toml"
+    experiment.write_text(EXPERIMENT.replace('"ks.stretch" = 300.0', '"ks.stretch" = 1e7'))
+    out = tmp_path / "unstable.fit.h5"
+    _refused(["fit", str(experiment), "--out", str(out), "--quiet"], capsys, "the fit blew up")
+    assert not out.exists() and not out.with_suffix(".png").exists()
+
+
+def test_damaged_fit_files_and_dangling_links_are_one_line(fitted, tmp_path, capsys):
+    held = str(fitted / "held.h5")
+    for damage in ("no fit group", "prediction not JSON", "value missing", "negative value"):
+        broken = tmp_path / f"{damage.replace(' ', '_')}.fit.h5"
+        broken.write_bytes((fitted / "rope.fit.h5").read_bytes())
+        with h5py.File(broken, "r+") as f:
+            if damage == "no fit group":
+                del f["fit"]
+            elif damage == "prediction not JSON":
+                f.attrs["prediction"] = "{not json"
+            elif damage == "value missing":
+                del f["fit/final"].attrs["ks.stretch"]
+            else:
+                f["fit/final"].attrs["ks.stretch"] = -5.0
+        _refused(["predict", str(broken), held, "--out-dir", str(tmp_path / "out")], capsys, str(broken))
+    link = tmp_path / "dangling"
+    link.symlink_to(tmp_path / "nowhere" / "x")
+    _refused(["predict", str(fitted / "rope.fit.h5"), held, "--out-dir", str(link)], capsys, "link to nothing")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "nowhere").exists()
+
+
+def test_recordings_too_large_or_too_far_are_refused_before_reading(tmp_path):
+    bomb = tmp_path / "bomb.h5"
+    with h5py.File(bomb, "w") as f:  # a small file holding a dataset of terabytes
+        f.attrs.update(format="jaxspring.recording", format_version=1)
+        f.create_dataset("t", shape=(10**6,), dtype=float, chunks=(1000,))
+        f.create_dataset("x", shape=(10**6, 10**5, 3), dtype=float, chunks=(1, 10, 3))
+    assert bomb.stat().st_size < 10**6
+    with pytest.raises(js.InputError, match="of memory"):
+        js.load_recording(bomb)
+    x = np.zeros((3, 2, 3))
+    x[1, 1, 0] = 1e300
+    with pytest.raises(js.InputError, match="frame 1, marker 'm1'.*more than 1e\\+12 m"):
+        js.Recording(t=[0.0, 0.01, 0.02], x=x)
+
+
+def test_one_file_named_twice_is_fitted_once(tmp_path):
+    from jaxspring.io.experiment import recording_paths
+
+    for name in ("take0.h5", "take1.h5"):
+        (tmp_path / name).write_bytes(b"")
+    (tmp_path / "link.h5").symlink_to(tmp_path / "take0.h5")
+    found = recording_paths(["take*.h5", str(tmp_path / "take0.h5"), "link.h5"], tmp_path, "target.recordings")
+    assert [p.rsplit("/", 1)[-1] for p in found] == ["take0.h5", "take1.h5"]
+
+
+def test_a_cable_through_markers_in_a_line_spaced_one_to_two_is_finite():
+    t = np.arange(5) * 0.01
+    for x in ([[0, 0, 0], [1, 0, 0], [3, 0, 0]], [[0, 0, 0], [1, 0, 0], [3, 0, 0], [4, 0, 0]]):
+        marks = np.array(x, float)
+        cable = js.cable_scene([js.Recording(t=t, x=np.repeat(marks[None], 5, 0))], driven=(0, -1), subdivide=3)
+        positions = np.array(cable.scene["particles"]["x"])
+        assert np.isfinite(positions).all()
+        np.testing.assert_allclose(positions[cable.markers], marks, atol=1e-12)  # through every marker

@@ -139,7 +139,7 @@ def command(args):
 
     from tqdm.auto import tqdm
 
-    from ..errors import InputError
+    from ..errors import BlowUpError, InputError
     from ..fit.loop import fit_batch
     from ..io.fit_file import load_fit_progress, save_fit
     from ..render import plot_fit
@@ -170,8 +170,9 @@ def command(args):
         }
     for path in (out, plot):
         check_output(path, inputs)
-    held_out = _held_out(experiment)  # checked before the fit, not after it
+    held_out = _held_out(experiment, observations)  # checked before the fit, not after it
     progress = load_fit_progress(out, config, names) if args.resume else None
+    existed = out.exists()
     present = scene.model.parameter_values(scene.params)
     initial = {n: np.asarray(init.get(n, present[n]), dtype=float) for n in names if n in present}
     latest = [None]
@@ -222,6 +223,14 @@ def command(args):
                 on_iteration=on_iteration,
                 max_memory=limit,
             )[0]
+        if not all(np.all(np.isfinite(np.asarray(v))) for v in result.final.values()):
+            if not existed:  # its checkpoints are of no use: nothing of this run is left
+                out.unlink(missing_ok=True)
+            raise BlowUpError(
+                f"{experiment.name}: the fit blew up (its values are not finite: every rollout from the start "
+                "values went past the time step's stability limit); start from softer values (lower init), or "
+                "give the scene a smaller dt"
+            )
         final = latest[0] or progress
         save_fit(out, config, names, initial, final, result, prediction)
     except KeyboardInterrupt:
@@ -239,13 +248,14 @@ def command(args):
     plot_fit(result, plot)
     print(result.table())
     if held_out:
-        _evaluate(experiment, result, held_out)
+        _evaluate(experiment, result, held_out, getattr(observations, "marker_names", None) or None)
     print(f"wrote {out} and {plot}")
 
 
-def _held_out(experiment) -> list:
-    """The experiment's `[evaluate]` recordings, read and checked against its markers, driven
-    markers and start frame (each problem an InputError naming the file)."""
+def _held_out(experiment, observations) -> list:
+    """The experiment's `[evaluate]` recordings, read, their markers matched by name to the
+    fitted ones, and checked against its markers, driven markers and start frame (each problem
+    an InputError naming the file)."""
     from ..errors import InputError
     from ..fit.recordings import recording_target
     from ..io.recording import load_recording
@@ -260,13 +270,15 @@ def _held_out(experiment) -> list:
                 experiment.driven,
                 experiment.start,
                 experiment.smooth,
+                names=(Path(path).stem,),
+                marker_names=getattr(observations, "marker_names", None) or None,
             )
         except InputError as exc:
             raise exc.within(str(path), "evaluate") from None
     return held_out
 
 
-def _evaluate(experiment, result, held_out):
+def _evaluate(experiment, result, held_out, result_markers):
     """Print the fitted model's error on the experiment's held-out recordings; a prediction that
     blows up is reported as such (the fit itself is saved)."""
     from ..errors import BlowUpError
@@ -283,6 +295,7 @@ def _evaluate(experiment, result, held_out):
             experiment.start,
             experiment.smooth,
             names=tuple(Path(p).stem for p in paths),
+            marker_names=result_markers,
         )
     except BlowUpError as exc:
         print(f"held-out: unstable, no error to report: {exc}")

@@ -55,6 +55,8 @@ def command(args):
     out_dir = Path(args.out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("--out-dir", f"{str(out_dir)!r} is a file", "give a folder")
+    if out_dir.is_symlink() and not out_dir.exists():
+        raise InputError("--out-dir", f"{str(out_dir)!r} is a link to nothing", "give a folder, or remove the link")
     stems = [Path(p).stem for p in args.recordings]
     if len(set(stems)) != len(stems):
         raise InputError("recordings", "two recordings share a file name", "give recordings with distinct names")

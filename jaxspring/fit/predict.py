@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import BlowUpError, InputError
 from ..io.recording import matched_by_name
-from ..resources import check_memory
+from ..resources import check_compiled, check_memory
 from .identifiability import unique_names
 from .recording_loss import carriers, markers_simulated, target_data
 from .recordings import RecordingTarget, recording_target
@@ -204,7 +204,9 @@ def predict(
     model = scene.model
     params = model.params_with(scene.params, {n: jnp.asarray(v) for n, v in values.items()})
     run = simulator(scene, target)
-    simulated = np.asarray(jax.jit(run)(params))
+    what = f"predicting {len(recordings)} recording(s) of {target.frame_count} frames ({target.steps} steps)"
+    fix = "predict fewer or shorter recordings (are the frame times in seconds?)"
+    simulated = np.asarray(check_compiled(jax.jit(run), (params,), what, "recordings", fix)(params))
     for i in range(len(recordings)):
         _refuse_blowup(simulated[i, : int(target.lengths[i])], target, i, start)
     low = high = None
@@ -310,7 +312,10 @@ def _draw(values: dict, covariance: dict, samples: int, seed: int) -> dict:
     labels = list(covariance["names"])
     matrix = np.asarray(covariance["matrix"], dtype=float)
     centre = np.concatenate([np.log(np.asarray(values[n], dtype=float)).reshape(-1) for n in unique_names(labels)])
+    variance = np.diag(matrix).copy()
     matrix = np.where(np.isfinite(matrix), matrix, 0.0)
+    # a value the data do not determine (an infinite or NaN variance) spreads as far as the cap below
+    np.fill_diagonal(matrix, np.where(np.isfinite(variance), variance, 1e300))
     matrix = 0.5 * (matrix + matrix.T)
     # a parameter the data do not determine does not move the markers either: cap its log spread at 1
     scale = np.minimum(1.0, 1.0 / np.sqrt(np.maximum(np.diag(matrix), 1e-300)))

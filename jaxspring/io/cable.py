@@ -255,6 +255,11 @@ def _spline(shape, splits):
     splits[k] equal parameter steps between markers k and k + 1, (1 + sum(splits), 3)."""
     # one more point at each end, extrapolated by the quadratic through the end's three markers
     before, after = 3 * shape[0] - 3 * shape[1] + shape[2], 3 * shape[-1] - 3 * shape[-2] + shape[-3]
+    # where that point falls on the end marker (markers in a line, spaced 1 : 2), a straight continuation
+    if not np.linalg.norm(before - shape[0]) > 1e-9 * np.linalg.norm(shape[1] - shape[0]):
+        before = 2 * shape[0] - shape[1]
+    if not np.linalg.norm(after - shape[-1]) > 1e-9 * np.linalg.norm(shape[-1] - shape[-2]):
+        after = 2 * shape[-1] - shape[-2]
     padded = np.concatenate([[before], shape, [after]])
     points = [shape[0]]
     for k, s in enumerate(splits):

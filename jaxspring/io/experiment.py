@@ -124,7 +124,11 @@ def recording_paths(patterns, base: Path, field: str) -> tuple:
         matches = sorted(glob.glob(full)) if glob.has_magic(pattern) else ([full] if Path(full).exists() else [])
         if not matches:
             raise InputError(field, f"{pattern!r} matches no file (looked in {base})", "fix the path or glob")
-        found += [m for m in matches if m not in found]
+        seen = {Path(m).resolve() for m in found}
+        for m in matches:  # one file under two names (a glob and a path, a link) counts once
+            if Path(m).resolve() not in seen:
+                found.append(m)
+                seen.add(Path(m).resolve())
     return tuple(found)
 
 

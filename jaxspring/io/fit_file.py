@@ -173,19 +173,34 @@ def load_fitted(path) -> dict:
             raise InputError(
                 "fit", f"{path} was not fitted to recordings", "fit an experiment with [target] recordings first"
             )
-        group = f["fit"]
-        final = {n: np.asarray(v) for n, v in group["final"].attrs.items()}
-        covariance = None
-        if "correlation" in group and "standard_error" in group:
-            labels = [str(n) for n in group["correlation"].attrs["names"]]
-            relative = {
-                n: np.asarray(group["standard_error"].attrs[n] / final[n], dtype=float) for n in unique_names(labels)
-            }
-            report = Identifiability({}, relative, group["correlation"][()], tuple(labels), 0.0, ())
-            covariance = report.covariance()
+        try:
+            group = f["fit"]
+            final = {n: np.asarray(v, dtype=float) for n, v in group["final"].attrs.items()}
+            prediction = json.loads(f.attrs["prediction"])
+            covariance = None
+            if "correlation" in group and "standard_error" in group:
+                labels = [str(n) for n in group["correlation"].attrs["names"]]
+                relative = {
+                    n: np.asarray(group["standard_error"].attrs[n] / final[n], dtype=float)
+                    for n in unique_names(labels)
+                }
+                report = Identifiability({}, relative, group["correlation"][()], tuple(labels), 0.0, ())
+                covariance = report.covariance()
+            noise_std = float(group.attrs.get("noise_std", 0.0))
+        except (KeyError, TypeError, ValueError, OSError) as exc:
+            raise FileFormatError(
+                f"{path}: a part of the fit is missing or unreadable ({type(exc).__name__}: {exc}); fit again"
+            ) from None
+        bad = [n for n, v in final.items() if not (np.all(np.isfinite(v)) and np.all(v > 0))]
+        if bad or not final:
+            raise InputError(
+                "fit",
+                f"{path} holds no positive finite fitted value for {', '.join(bad) or 'any parameter'}",
+                "fit again",
+            )
         return {
             "final": final,
-            "prediction": json.loads(f.attrs["prediction"]),
+            "prediction": prediction,
             "covariance": covariance,
-            "noise_std": float(group.attrs.get("noise_std", 0.0)),
+            "noise_std": noise_std if np.isfinite(noise_std) else 0.0,
         }

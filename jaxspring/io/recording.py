@@ -12,12 +12,15 @@ import h5py
 import numpy as np
 
 from ..errors import FileFormatError, InputError
+from ..resources import check_hdf5_read
 from .trajectory import atomic_path, open_hdf5
 
 RECORDING_FORMAT = "jaxspring.recording"
 FORMAT_VERSION = 1
 HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf")
 CSV_AXES = ("x", "y", "z")
+MAX_POSITION = 1e12
+"""Largest marker coordinate a recording may hold [m]: beyond it, no simulation of it is finite."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -26,7 +29,7 @@ class Recording:
 
     Arrays are stored as read-only float64 NumPy arrays. Construction checks them:
     t finite and strictly increasing with at least 2 frames, x of shape (F, M, 3) with
-    no infinite value, a marker lost in all three coordinates or none, every marker seen
+    no infinite value nor one beyond 1e12 m, a marker lost in all three coordinates or none, every marker seen
     in at least one frame, and M distinct non-empty names.
 
     Attributes:
@@ -164,6 +167,7 @@ def _load_hdf5(path: Path) -> Recording:
                 f"{path}: recording format_version {shown} is not supported; "
                 f"this jaxspring reads version {FORMAT_VERSION}"
             )
+        check_hdf5_read(f, path)  # a small file can hold a dataset far too large to read
         arrays = {}
         for name in ("t", "x"):
             if not isinstance(f.get(name), h5py.Dataset):
@@ -315,6 +319,16 @@ def _check_positions(x: np.ndarray, markers: tuple[str, ...]) -> None:
             f"frame {frame[0]}, marker {markers[marker[0]]!r} (index {marker[0]}) has an infinite position",
             "give finite positions, or NaN where a marker was not seen",
         )
+    with np.errstate(invalid="ignore"):
+        far = np.abs(x) > MAX_POSITION
+    frame, marker = np.nonzero(far.any(axis=-1))
+    if frame.size:
+        raise InputError(
+            "x",
+            f"frame {frame[0]}, marker {markers[marker[0]]!r} (index {marker[0]}) is more than {MAX_POSITION:.0e} m "
+            "from the origin",
+            "give positions in metres (NaN where a marker was not seen); remove tracking glitches",
+        )
     lost = np.isnan(x)
     frame, marker = np.nonzero(lost.any(axis=-1) & ~lost.all(axis=-1))
     if frame.size:
@@ -359,25 +373,23 @@ def _unnamed(markers) -> bool:
 
 def matched_by_name(recordings, names, order=None) -> list:
     """`recordings` with their marker columns in the order of the names `order` (default: the
-    first named recording's), where the recordings name their markers; unnamed ones as given."""
-    named = [r for r in recordings if not _unnamed(r.markers)]
-    if order is None or _unnamed(order):
-        if not named:
-            return recordings
-        order = named[0].markers
-    order = tuple(order)
+    first recording's names): a recording with the same names in another order is reordered;
+    one with other names is refused, unless either side has only the default names (m0, m1,
+    ... in order: no names at all), which are matched by column."""
+    order = tuple(recordings[0].markers if order is None else order)
     out = []
     for name, rec in zip(names, recordings):
-        if _unnamed(rec.markers) or tuple(rec.markers) == order:
+        if tuple(rec.markers) == order:
             out.append(rec)
-            continue
-        missing = [m for m in order if m not in rec.markers]
-        if missing or len(rec.markers) != len(order):
+        elif len(rec.markers) == len(order) and set(rec.markers) == set(order):
+            columns = [rec.markers.index(m) for m in order]
+            out.append(type(rec)(t=rec.t, x=np.asarray(rec.x)[:, columns], markers=order))
+        elif len(rec.markers) == len(order) and (_unnamed(rec.markers) or _unnamed(order)):
+            out.append(type(rec)(t=rec.t, x=rec.x, markers=order))
+        else:
             raise InputError(
                 "recordings",
                 f"{name} names its markers {', '.join(rec.markers)}; expected {', '.join(order)}",
                 "give recordings of one marker set (matched by name)",
             )
-        columns = [rec.markers.index(m) for m in order]
-        out.append(type(rec)(t=rec.t, x=np.asarray(rec.x)[:, columns], markers=order))
     return out
