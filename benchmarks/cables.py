@@ -90,16 +90,26 @@ def _setup(folder: Path, name: str, frames: int, train: int, held_out: int):
 
 
 def run_variant(
-    folder: Path, name: str, frames: int, factor: float, train: int, held_out: int, center: dict | None = None
+    folder: Path,
+    name: str,
+    frames: int,
+    factor: float,
+    train: int,
+    held_out: int,
+    center: dict | None = None,
+    iterations: int | None = None,
+    search_starts: int | None = None,
 ) -> dict:
     """Fit one variant (in this process) from `factor` x `center` (default: the scene's values) and
-    predict the held-out recordings; the numbers as a dict."""
+    predict the held-out recordings; the numbers as a dict. `iterations`, `search_starts`: the
+    fit's most iterations per stage and its start search's starts (default: js.fit's)."""
     import jaxspring as js
 
     scene, target, params, values, held, options = _setup(folder, name, frames, train, held_out)
     init = {n: factor * float((center or values)[n]) for n in params}
+    budget = {k: v for k, v in dict(iterations=iterations, starts=search_starts).items() if v is not None}
     clock = time.perf_counter()
-    result = js.fit(scene, target, params, init=init)
+    result = js.fit(scene, target, params, init=init, **budget)
     fit_s = time.perf_counter() - clock
     fitted = js.summarise(js.predict(scene, result.final, held, **options))
     started = js.summarise(js.predict(scene, init, held, **options))
@@ -172,12 +182,25 @@ def run_dense(
 
 
 def child(
-    folder: Path, name: str, frames: int, factor: float, train: int, held_out: int, center=None, dense: int = 0
+    folder: Path,
+    name: str,
+    frames: int,
+    factor: float,
+    train: int,
+    held_out: int,
+    center=None,
+    dense: int = 0,
+    iterations: int | None = None,
+    search_starts: int | None = None,
 ) -> dict:
     """`run_variant` (or with `dense`, `run_dense`) in a fresh process (its own wall time and peak memory)."""
     argv = [sys.executable, __file__, "--data", str(folder), "--frames", str(frames), "--child", name]
     argv += ["--train", str(train), "--held-out", str(held_out)]
     argv += ["--factor", repr(factor), "--dense", str(dense)]
+    if iterations is not None:
+        argv += ["--iterations", str(iterations)]
+    if search_starts is not None:
+        argv += ["--search-starts", str(search_starts)]
     if center is not None:
         argv += ["--center", json.dumps(center)]
     done = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -267,6 +290,12 @@ def main(argv=None) -> None:
     parser.add_argument("--out", help="results file (default benchmarks/results/cables_<train>x<frames>.md)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--dense", type=int, default=256, help="points of the start sweep's dense search")
+    parser.add_argument(
+        "--iterations", type=int, help="most iterations per stage of the table's fits (default: js.fit's; for tests)"
+    )
+    parser.add_argument(
+        "--search-starts", type=int, help="start search starts of the table's fits (default: js.fit's; 1: no search)"
+    )
     parser.add_argument("--factor", type=float, default=1.0, help=argparse.SUPPRESS)
     parser.add_argument("--center", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -276,7 +305,8 @@ def main(argv=None) -> None:
         if center is not None and args.dense:
             print(json.dumps(run_dense(*where, args.train, args.held_out, center, args.dense)))
         else:
-            print(json.dumps(run_variant(*where, args.factor, args.train, args.held_out, center)))
+            budget = (args.iterations, args.search_starts)
+            print(json.dumps(run_variant(*where, args.factor, args.train, args.held_out, center, *budget)))
         return
     folder = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="jaxspring-cables-"))
     if not (folder / "truth.json").exists():
@@ -294,7 +324,8 @@ def main(argv=None) -> None:
     )
     rows = []
     for name in names:
-        rows.append(child(folder, name, args.frames, 1.0, args.train, args.held_out))
+        budget = dict(iterations=args.iterations, search_starts=args.search_starts)
+        rows.append(child(folder, name, args.frames, 1.0, args.train, args.held_out, **budget))
         print(json.dumps(rows[-1]), flush=True)
     lines = table(rows, title)
     if args.starts:

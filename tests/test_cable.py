@@ -2,7 +2,7 @@
 particles, rest chords equal to the median seen marker distances, the spline through the
 reference frame's markers, masses by arc length, segment groups, and its TOML text read back."""
 
-import subprocess
+import importlib.util
 import sys
 import tomllib
 from pathlib import Path
@@ -162,14 +162,19 @@ def test_the_shipped_cable_experiment_fits_and_predicts_held_out_takes(tmp_path,
     assert sorted(p.name for p in (tmp_path / "pred").glob("*.h5")) == [Path(p).name for p in held]
 
 
-def test_the_cable_benchmark_runs_at_a_small_size(tmp_path):
+def test_the_cable_benchmark_runs_at_a_small_size(tmp_path, monkeypatch):
     """benchmarks/cables.py end to end on 2 short takes: data from the rod model, the plain rope and
-    the bending rope fitted in their own processes, both predicting the held-out take far better
-    than the frozen floor, in one table."""
+    the bending rope fitted in their own processes (10 iterations, no start search), both
+    predicting the held-out take far better than the frozen floor, in one table. Its `main`
+    runs in this process; the fits still run in their own."""
+    monkeypatch.setattr(sys, "path", list(sys.path))  # main puts benchmarks/ on it
+    spec = importlib.util.spec_from_file_location("cables_benchmark", ROOT / "benchmarks" / "cables.py")
+    cables = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cables)
     out = tmp_path / "cables.md"
-    argv = [sys.executable, str(ROOT / "benchmarks" / "cables.py"), "--data", str(tmp_path / "data"), "--out", str(out)]
-    argv += ["--train", "2", "--held-out", "1", "--frames", "60", "--variants", "rope,rope_bending"]
-    subprocess.run(argv, check=True, capture_output=True, text=True, timeout=1200)
+    argv = ["--data", str(tmp_path / "data"), "--out", str(out), "--variants", "rope,rope_bending"]
+    argv += ["--train", "2", "--held-out", "1", "--frames", "60", "--iterations", "10", "--search-starts", "1"]
+    cables.main(argv)
     rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| ") and "[" not in line]
     errors = {r[1].strip(): float(r[7]) for r in rows}  # held-out mean abs. error per coordinate [mm]
     floor = errors.pop("floor: free markers frozen at the start frame")
