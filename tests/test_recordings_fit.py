@@ -267,7 +267,7 @@ def test_fit_and_predict_recording_files(files, capsys):
     assert main(["fit", str(files / "fit.toml"), "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert "held-out" in printed and "held " in printed
-    assert main(["predict", str(out), str(files / "held.h5"), "--out-dir", str(files / "pred"), "--bands", "8"]) == 0
+    assert main(["predict", str(out), str(files / "held.h5"), "--out-dir", str(files / "pred"), "--bands", "16"]) == 0
     printed = capsys.readouterr().out
     assert "95% band holds" in printed
     predicted, recorded = js.load_recording(files / "pred" / "held.h5"), js.load_recording(files / "held.h5")
