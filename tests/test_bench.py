@@ -13,6 +13,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from numpy_reference import reference_for_scene
 from scipy.integrate import solve_ivp
 
@@ -33,6 +34,7 @@ def test_check_prints_every_integrators_bound(capsys):
     assert "dt" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_bench_accuracy_quick(tmp_path, capsys):
     out = tmp_path / "bench"
     assert (
@@ -109,6 +111,7 @@ def _numpy_positions(scene, steps):
     return x
 
 
+@pytest.mark.slow
 def test_bench_speed_quick(tmp_path, capsys):
     out = tmp_path / "speed"
     args = ["bench", "speed", "--quick", "--peers", "jax_segment_sum,numpy", "--repeats", "1", "--out-dir", str(out)]

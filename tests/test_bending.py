@@ -115,6 +115,7 @@ def test_the_default_rest_curvature_is_that_of_the_rest_shape_and_a_rest_shape_f
     np.testing.assert_allclose(np.asarray(force), 0.0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_straight_chain_has_finite_gradients_and_a_bent_one_swings_back_conserving_energy():
     """At kappa = 0 the norm's gradient is the trap; without damping, energy is kept to O(dt)."""
     x = np.stack([np.linspace(0.0, 0.4, 5), np.zeros(5), np.zeros(5)], axis=1)
@@ -163,6 +164,7 @@ def test_bad_bending_tables_are_one_line_errors_naming_the_field(change, field):
     assert "\n" not in str(error.value)
 
 
+@pytest.mark.slow
 def test_the_stability_estimate_of_a_straight_chain_sees_the_bending_stiffness():
     """A straight chain's zig-zag mode: kappa_i = (u_i-1 - 2 u_i + u_i+1) / l, K = kb / l^3 D^T D with
     |D^T D| <= 16, so omega^2 -> 16 kb / (l^3 m); a long chain comes close to the bound from below."""
@@ -187,6 +189,7 @@ def _native_or_skip():
         pytest.skip("native kernel not built here")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_the_native_bending_kernel_matches_finite_differences_and_the_jax_force(dtype):
     """The C++ kernel (the default stepper of a bending model on CPU): its force equals the JAX

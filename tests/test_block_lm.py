@@ -138,6 +138,7 @@ def test_linked_blocks_reach_the_dense_least_squares_answer_and_its_covariance(m
     np.testing.assert_allclose(solution.cost, float(np.sum((dense @ answer - target) ** 2)), rtol=1e-10)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("noise", [0.0, 0.05], ids=["exact", "noisy"])
 def test_frozen_state_blocks_reach_the_same_answer_and_standard_errors(noise, monkeypatch):
     """Blocks whose states' Jacobian changes with p (r_b = exp(p0 t) (1 + s_b0 t^2 + s_b1 sin 3t)

@@ -142,6 +142,7 @@ def test_bad_cable_arguments_fail_in_one_line(kwargs, words):
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@pytest.mark.slow
 def test_the_shipped_cable_experiment_fits_and_predicts_held_out_takes(tmp_path, monkeypatch, capsys):
     """fitting/cable: recordings of a different model (an elastic rod with twist), a scene with the
     bending term; `jaxspring fit` then `jaxspring predict` as docs/fitting.md runs them. Two
@@ -162,6 +163,7 @@ def test_the_shipped_cable_experiment_fits_and_predicts_held_out_takes(tmp_path,
     assert sorted(p.name for p in (tmp_path / "pred").glob("*.h5")) == [Path(p).name for p in held]
 
 
+@pytest.mark.slow
 def test_the_cable_benchmark_runs_at_a_small_size(tmp_path, monkeypatch):
     """benchmarks/cables.py end to end on 2 short takes: data from the rod model, the plain rope and
     the bending rope fitted in their own processes (10 iterations, no start search), both

@@ -31,6 +31,7 @@ def test_run_writes_file_and_summary(tmp_path, capsys):
     assert printed == pytest.approx(e_end, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_run_float64_dtype(tmp_path):
     out = tmp_path / "pair.h5"
     assert main(["run", "mass_spring", "--steps", "100", "--dtype", "float64", "--out", str(out), "--quiet"]) == 0
@@ -85,6 +86,7 @@ def test_stable_dt_estimate_single_spring_hand_calculation():
     assert damped.dt_bound == pytest.approx((-2 + np.sqrt(104)) / 25, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_render_png_and_gif(tmp_path, capsys):
     h5 = tmp_path / "jelly.h5"
     assert main(["run", "jelly", "--steps", "200", "--save-every", "20", "--out", str(h5), "--quiet"]) == 0
@@ -100,6 +102,7 @@ def test_render_png_and_gif(tmp_path, capsys):
     assert main(["render", str(h5), "--out", str(tmp_path / "movie.mp4")]) == 2
 
 
+@pytest.mark.slow
 def test_demo_on_a_fresh_process(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "jaxspring", "demo", "--out-dir", str(tmp_path / "demo"), "--no-movies"],

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
 from test_recordings_fit import ROPE, make_recordings
 
 import jaxspring as js
@@ -42,6 +43,7 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_two_processes_fit_like_one():
     script = WORKER.replace("TESTS", repr(os.path.dirname(__file__)))
     port = str(_free_port())

@@ -61,6 +61,7 @@ def test_driven_rope_matches_numpy_loop(rope):
     assert np.abs(x[-1, 1:] - x[0, 1:]).max() > 0.05  # the rest of the rope moved
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("integrator", ["semi_implicit_euler", "verlet", "rk4", "backward_euler"])
 def test_galilean_invariance_for_every_integrator(integrator):
     """Without drag, an end dragged at constant velocity u moves the rope exactly like the
@@ -80,6 +81,7 @@ def test_galilean_invariance_for_every_integrator(integrator):
     assert np.abs(np.asarray(still.x[-1] - still.x[0])).max() > 1e-3  # gravity moved it
 
 
+@pytest.mark.slow
 def test_gradient_through_driven_rollout_matches_finite_differences(rope):
     drive = knots(np.linspace(0.0, 0.3, 7))
     target = js.rollout(rope.model, rope.params, rope.state, steps=120, save_every=20, drive=drive).x

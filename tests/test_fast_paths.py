@@ -36,6 +36,7 @@ def force(model, params, x, v):
     return model.force(params, x, v)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["cloth", "jelly"])
 @pytest.mark.parametrize("per_spring", [False, True])
 def test_structured_force_rollout_and_gradient_equal_generic(scenes, name, per_spring):
@@ -80,6 +81,7 @@ def cloth_loss(scene, steps, every, checkpoint):
     return loss
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("steps, every, checkpoint", [(200, 200, "sqrt"), (200, 10, 7), (210, 3, 50)])
 def test_checkpointed_gradient_equals_plain(scenes, steps, every, checkpoint):
     scene = scenes["cloth"]
@@ -92,6 +94,7 @@ def test_checkpointed_gradient_equals_plain(scenes, steps, every, checkpoint):
     np.testing.assert_array_equal(np.asarray(x0), np.asarray(x1))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["jax", "auto"])
 def test_hundred_thousand_step_gradient_fits_in_one_gib(scenes, backend):
     scene = scenes["cloth"].with_backend(backend)

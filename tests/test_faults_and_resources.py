@@ -33,6 +33,7 @@ def test_check_never_says_ok_about_a_scene_that_blows_up(capsys, tmp_path):
     _refused(capsys, tmp_path, "run", scene, "--steps", "20", "--save-every", "10", "--out", tmp_path / "q.h5")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "scene, change",
     [
@@ -108,6 +109,7 @@ def test_work_beyond_memory_or_disk_is_refused_up_front(capsys, tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_fits_and_renders_beyond_memory_are_refused_up_front(inputs, capsys, tmp_path, monkeypatch):
     """Fit: XLA's own memory plan of an iteration; render: the file's arrays, then the movie's
     pictures (measured ~4.9 bytes a pixel of peak memory; 8 assumed)."""
@@ -165,6 +167,7 @@ def test_scene_files_that_are_not_regular_or_too_large_or_too_deep(capsys, tmp_p
     _refused(capsys, tmp_path, "run", large, "--out", tmp_path / "o.h5", naming=("more than the 100",))
 
 
+@pytest.mark.slow
 def test_the_blowup_step_does_not_depend_on_save_every(capsys, tmp_path):
     scene = tmp_path / "jelly.toml"
     scene.write_text(resolve_scene_path("jelly").read_text().replace("dt = 0.001", "dt = 0.01"))
@@ -184,6 +187,7 @@ def test_tiny_masses_are_warned_about_by_check(capsys, tmp_path):
     assert "expect a blow-up" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_numpy_warnings_never_lengthen_the_error_line(tmp_path):
     """In a fresh process (pytest would catch warnings in-process): a scene whose estimate
     overflows, where NumPy warns, still ends in exactly one line."""

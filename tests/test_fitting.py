@@ -54,6 +54,7 @@ def experiments():
     return {name: js.load_experiment(ROOT / "fitting" / f"{name}.toml") for name in EXPERIMENTS}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_experiment_recovers_parameters_without_noise(experiments, name):
     experiment = experiments[name]
@@ -74,6 +75,7 @@ def test_experiment_recovers_parameters_without_noise(experiments, name):
         assert error < 0.01, (n, error)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_experiment_with_one_percent_noise(experiments, name):
     experiment = experiments[name].replace(noise=0.01)
@@ -103,6 +105,7 @@ def test_experiment_with_one_percent_noise(experiments, name):
     assert excess <= 9.0, excess
 
 
+@pytest.mark.slow
 def test_ensemble_stage_finds_the_least_squares_fit_of_a_smooth_loss():
     """On a smooth loss the smoothed Gauss-Newton stage must land where the gradient fit does.
 
@@ -194,6 +197,7 @@ def test_gauss_newton_standard_error_matches_hand_calculation():
     assert float(report.standard_error["ks"]) == pytest.approx(expected, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_standard_error_counts_the_noise_of_recorded_segment_starts():
     """Segments from noisy recorded states: s^2 (J^T J)^-1 plus the starts' noise carried to the
     answer, s_x^2 (J^T J)^-2 (J^T J_x)^2, both Jacobians by finite differences of rollouts."""
@@ -281,6 +285,7 @@ def test_rough_loss_is_flagged(experiments):
     assert not any("not smooth" in w for w in report.warnings), report.warnings
 
 
+@pytest.mark.slow
 def test_multi_start_and_multi_target_batches():
     experiment = js.load_experiment(ROOT / "fitting" / "chain.toml")
     scene = experiment.scene
@@ -299,6 +304,7 @@ def test_multi_start_and_multi_target_batches():
     assert float(results[1].final["ks"]) == pytest.approx(1400.0, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_gauss_newton_polish_finishes_a_stopped_fit(experiments):
     experiment = experiments["chain"]
     obs = experiment.observations()
@@ -312,6 +318,7 @@ def test_gauss_newton_polish_finishes_a_stopped_fit(experiments):
     assert np.all(np.diff(polished.loss_history[polished.stage_of_iteration.size - 1 :]) <= 0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["curriculum", "shooting"])
 def test_long_horizon_strategies(strategy):
     experiment = js.load_experiment(ROOT / "fitting" / "chain.toml").replace(steps=3000, save_every=30)
@@ -372,6 +379,7 @@ def custom_recording(tmp_path_factory):
     return recording
 
 
+@pytest.mark.slow
 def test_cli_fits_any_trajectory_file(tmp_path, custom_recording, capsys):
     out = tmp_path / "tripod.fit.h5"
     code = main(
@@ -492,6 +500,7 @@ def uninterrupted_fit(tmp_path_factory):
     return whole
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_interrupted_fit_resumes_to_the_same_result(tmp_path, uninterrupted_fit, sig):
     experiment = _short_chain_experiment(tmp_path)
@@ -533,6 +542,7 @@ def test_interrupted_fit_resumes_to_the_same_result(tmp_path, uninterrupted_fit,
             np.testing.assert_array_equal(a[f"fit/history/{name}"][()], b[f"fit/history/{name}"][()])
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_different_fit(tmp_path, capsys):
     # the mass-spring experiment cut to 0.5 s (one direct stage): the refusal is about the settings
     experiment = tmp_path / "mass_spring_short.toml"

@@ -30,6 +30,7 @@ def chain():
     return js.load_scene(SCENES / "chain.toml")
 
 
+@pytest.mark.slow
 def test_positions_only_multiple_shooting_recovers_a_2s_chain(chain):
     obs = positions_only(chain, CHAIN_TRUTH, 2000, 20)
     init = {"ks": 400.0, "kd": 12.0, "cd": 0.15}  # 2.5 to 3 times away
@@ -48,6 +49,7 @@ def test_positions_only_multiple_shooting_recovers_a_2s_chain(chain):
     np.testing.assert_allclose(x[:, obs.particles], obs.x[::10][: len(x)], atol=1e-10)  # and on the observations
 
 
+@pytest.mark.slow
 def test_with_noise_the_segment_length_does_not_change_the_answer(chain):
     """1 s, 1% noise, positions only: with continuity raised to a constraint the answer is the
     maximum-likelihood fit of one continuous motion, whatever the segments (a fixed penalty's
@@ -66,6 +68,7 @@ def test_with_noise_the_segment_length_does_not_change_the_answer(chain):
         assert abs(np.log(float(short.final[n]) / true)) < 3 * se, n
 
 
+@pytest.mark.slow
 def test_multiple_shooting_recovers_a_chain_seen_at_a_third_of_its_particles(chain):
     """6 of 19 free particles observed, positions only: the others' segment states are guessed
     by the start rule and fitted like the rest."""
@@ -79,6 +82,7 @@ def test_multiple_shooting_recovers_a_chain_seen_at_a_third_of_its_particles(cha
     assert all(float(se[n]) < 1e-6 for n in CHAIN_TRUTH)  # exact data: the residual variance is round-off
 
 
+@pytest.mark.slow
 def test_positions_only_multiple_shooting_recovers_a_jelly_through_its_impacts():
     """A 3 x 3 x 3 jelly (all springs of the jelly scene) spinning as it falls 0.3 m, lands and
     bounces, for 1 s: the segments that touch the ground are left out (contact switches on at
@@ -105,6 +109,7 @@ def test_positions_only_multiple_shooting_recovers_a_jelly_through_its_impacts()
     np.testing.assert_allclose(result.estimated["segment_x"][:, obs.particles], obs.x[firsts], atol=1e-10)
 
 
+@pytest.mark.slow
 def test_the_shooting_objective_gradient_matches_finite_differences(chain):
     obs = positions_only(chain, CHAIN_TRUTH, 300, 20)
     problem = shooting_problem(chain, obs, list(CHAIN_TRUTH), CHAIN_TRUTH, 5, CONTINUITY_WEIGHTS[0])

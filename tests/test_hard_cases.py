@@ -31,6 +31,7 @@ def damped_chain():
     return hard("damped_chain")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["stiff_cloth", "damped_chain"])
 @pytest.mark.parametrize("integrator", EXPLICIT)
 def test_explicit_integrators_blow_up_where_predicted(request, case, integrator):
@@ -46,6 +47,7 @@ def test_explicit_integrators_blow_up_where_predicted(request, case, integrator)
     assert run(scene, integrator, 1000, 10, dt=1.2 * bound)[2] is not None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case, steps", [("stiff_cloth", 40), ("damped_chain", 400)])
 def test_backward_euler_stays_bounded(request, case, steps):
     scene = request.getfixturevalue(case)
@@ -56,6 +58,7 @@ def test_backward_euler_stays_bounded(request, case, steps):
     assert np.all(e <= e[0] + 1e-9 * abs(e[0]))  # nothing adds energy; backward Euler only removes it
 
 
+@pytest.mark.slow
 def test_run_reports_the_blowup_step(tmp_path, capsys):
     out = tmp_path / "stiff.h5"
     code = main(["run", "hard/stiff_cloth", "--steps", "400", "--save-every", "10", "--out", str(out), "--quiet"])
@@ -68,6 +71,7 @@ def test_run_reports_the_blowup_step(tmp_path, capsys):
     assert "unconditional" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_fast_jelly_stays_stable_and_loses_energy():
     scene = hard("fast_jelly")
     for integrator in EXPLICIT:
@@ -92,6 +96,7 @@ def test_undamped_chain_conserves_energy_and_is_chaotic():
     assert separation[-1] > 1e6 * separation[1]  # 1e-10 m at 0.5 s grows past 1e-4 m by 15 s
 
 
+@pytest.mark.slow
 def test_fine_cloth_is_a_100_by_100_lattice_and_runs():
     scene = hard("fine_cloth")
     assert scene.model.particle_count == 10_000 and scene.lattice_shape == (100, 100)
@@ -101,6 +106,7 @@ def test_fine_cloth_is_a_100_by_100_lattice_and_runs():
     assert problem is None and np.all(np.isfinite(np.asarray(traj.x)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("integrator", list(js.INTEGRATORS))
 def test_coincident_particles_finite_forces_and_gradients(integrator):
     scene = hard("coincident").with_integrator(integrator)

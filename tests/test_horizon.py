@@ -94,6 +94,7 @@ def local_minima(scene, obs, stage, name):
     return [offsets[i] for i in range(1, offsets.size - 1) if values[i] < min(values[i - 1], values[i + 1])]
 
 
+@pytest.mark.slow
 def test_a_chaotic_target_is_fitted_over_the_horizon_its_misfit_is_smooth_over(spinning_jelly):
     scene, obs = spinning_jelly
     result = js.fit(scene, obs, ["ks", "kd"], init={"ks": 600.0, "kd": 0.02})  # auto: shooting, then the horizon
@@ -182,6 +183,7 @@ def test_a_cloud_member_that_blows_up_ends_the_smooth_stretch(scenes):
     assert still.whole  # the same cloud without it
 
 
+@pytest.mark.slow
 def test_a_fit_cut_to_its_horizon_resumes_with_the_saved_one(scenes, monkeypatch):
     """The horizon is measured once; a fit resumed in its final stage reads it back and never
     measures again (a new measurement at other values could cut other segments)."""
@@ -225,6 +227,7 @@ def test_an_ensemble_stage_that_fits_to_round_off_stops(scenes):
     assert loop._converged(progress, js.FitSettings(), True, gradient, floor)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["chain", "jelly"])
 def test_a_float32_fit_without_noise_reaches_the_truth(tmp_path, capsys, name):
     """Measured: with the round-off loss (64 units of float32's precision of the chain's

@@ -21,6 +21,7 @@ from jaxspring.cli import main
 from jaxspring.io.scene import resolve_scene_path
 
 
+@pytest.mark.slow
 def test_fit_target_reads_a_float32_file_from_run(float32_recording):
     """The README's workflow: `run` (float32 by default), then `fit --target` (float64)."""
     result = _jaxspring(
@@ -31,6 +32,7 @@ def test_fit_target_reads_a_float32_file_from_run(float32_recording):
     _fitted_loss_fell(float32_recording / "cli.fit.h5")
 
 
+@pytest.mark.slow
 def test_experiment_target_file_reads_a_float32_file(float32_recording):
     (float32_recording / "exp.toml").write_text(
         'scene = "chain"\n[target]\nfile = "rec.h5"\n[fit]\nparams = ["ks"]\ninit = { ks = 400.0 }\niterations = 8\n'

@@ -34,6 +34,7 @@ def references(scenes):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene_name", list(SWEEPS))
 @pytest.mark.parametrize("integrator", list(ORDERS))
 def test_convergence_order(scenes, references, scene_name, integrator):
@@ -70,6 +71,7 @@ def test_symplectic_energy_bounded_without_drift(integrator):
     assert abs(trend) < 0.1 * np.max(np.abs(error))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("integrator", ["rk4", "backward_euler"])
 def test_energy_loss_matches_amplification_factor(integrator):
     # On x'' = -w^2 x one step multiplies the amplitude by |R(i w dt)|, so energy by |R|^2:
@@ -95,6 +97,7 @@ def position_loss(scene, steps, every):
     return jax.jit(loss)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("integrator", ["verlet", "rk4", "backward_euler"])
 def test_gradient_matches_central_differences(scenes, integrator):
     scene = scenes["chain"].with_integrator(integrator)
@@ -108,6 +111,7 @@ def test_gradient_matches_central_differences(scenes, integrator):
         assert abs(float(grads[key]) - fd) <= 1e-5 * abs(fd), (key, float(grads[key]), fd)
 
 
+@pytest.mark.slow
 def test_backward_euler_under_vmap_matches_single_rollouts(scenes):
     scene = scenes["chain"].with_integrator("backward_euler")
     ks = jnp.array([500.0, 1000.0, 2000.0])
@@ -150,6 +154,7 @@ CASES = [("chain", "semi_implicit_euler"), ("chain", "verlet"), ("chain", "rk4")
 CASES += [("cloth", "semi_implicit_euler"), ("cloth", "verlet"), ("cloth", "rk4"), ("jelly", "semi_implicit_euler")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, integrator", CASES)
 def test_analyser_bound_matches_observed_stability_limit(scenes, name, integrator):
     scene = on_the_ground(scenes["jelly"]) if name == "jelly" else scenes[name]

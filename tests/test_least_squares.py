@@ -6,6 +6,7 @@ import importlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jax.flatten_util import ravel_pytree
 
 import jaxspring as js
@@ -93,6 +94,7 @@ def test_levenberg_marquardt_on_the_segments_finds_the_truth(scenes):
         assert abs(np.exp(float(value)) / CHAIN_TRUTH[n] - 1) < 1e-9, n
 
 
+@pytest.mark.slow
 def test_a_batch_finishes_each_member_on_its_own(scenes, monkeypatch):
     """Two targets in one fit_batch, exact and noisy, both let into the finish (as if stalled
     within round-off's reach) after three L-BFGS iterations: each ends its shooting stage

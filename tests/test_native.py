@@ -68,6 +68,7 @@ def force_and_vjp(model, params, x, v, ct):
     return model.force(params, x, v), pull(ct)
 
 
+@pytest.mark.slow
 def test_forces_and_their_vjp_match(scenes):
     for name, model, params, state in cases(scenes):
         native = model.replace(backend="native", lattice=None)  # the spring kernel of any topology
@@ -91,6 +92,7 @@ def fit_loss(p, s, m, target):
 fit_loss_grad = jax.jit(jax.grad(fit_loss, argnums=(0, 1)))  # one compiled program a model
 
 
+@pytest.mark.slow
 def test_rollouts_and_gradients_match(scenes):
     for name, model, params, state in cases(scenes):
         native = model.replace(backend="native")
@@ -104,6 +106,7 @@ def test_rollouts_and_gradients_match(scenes):
             assert float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) <= 1e-11 * scale, name
 
 
+@pytest.mark.slow
 def test_vmap_and_forward_mode_fallbacks(scenes):
     scene = scenes["chain"].with_backend("native")
     assert scene.model.backend == "native"
@@ -120,6 +123,7 @@ def test_vmap_and_forward_mode_fallbacks(scenes):
     assert relative(x, y) < 1e-12
 
 
+@pytest.mark.slow
 def test_fit_with_the_native_backend(scenes):
     chain = scenes["chain"]
     obs = js.synthetic_observations(chain, {"ks": 1000.0, "kd": 5.0}, 200, 20)
@@ -176,6 +180,7 @@ def assert_gradients_match(loss, native, plain, args, name):
         assert float(np.max(np.abs(a - b))) <= 1e-11 * scale, name
 
 
+@pytest.mark.slow
 def test_lattice_kernel_matches_jax_through_ground_contact(scenes):
     """Jelly lowered onto the ground (contact from the first steps) and the pinned cloth:
     trajectories to 1e-12, gradients wrt every parameter, the initial state and the
@@ -197,6 +202,7 @@ def test_lattice_kernel_matches_jax_through_ground_contact(scenes):
         assert_gradients_match(loss, native, model, (params, state), name)
 
 
+@pytest.mark.slow
 def test_lattice_kernel_batches_segments_and_checkpoints(scenes):
     model, params, state = lattice_case(scenes["chain"], seed=1)
     native = model.replace(backend="native")
@@ -220,6 +226,7 @@ def test_lattice_kernel_batches_segments_and_checkpoints(scenes):
         assert relative(g(params.ks), h(params.ks)) < 1e-11
 
 
+@pytest.mark.slow
 def test_lattice_backward_replays_alone_when_its_second_thread_is_late(scenes, monkeypatch):
     """On two threads, the backward call's first thread replays what the second has not
     begun, and all that is left once the second is late (here forced by a test hook, from
@@ -262,6 +269,7 @@ print("after:", " ".join(repr(float(g)) for g in np.ravel(jax.grad(loss)(scene.s
 """
 
 
+@pytest.mark.slow
 def test_lattice_backward_out_of_memory_raises_and_the_process_lives(scenes):
     """The backward call's buffers cannot be allocated (forced by a test hook, in a process
     of its own): the call raises a Python exception saying so instead of ending the
@@ -309,6 +317,7 @@ def test_lattice_batches_of_members_side_by_side(scenes):
             assert relative(batched[i], final(model, x0[i], **member)) < 1e-12, name
 
 
+@pytest.mark.slow
 def test_lattice_kernel_threads_on_a_large_lattice():
     """A 100 x 100 cloth (39k springs) splits over threads: same numbers, float64 and float32."""
     scene = cloth_of_size((100, 100)).with_backend("jax")
@@ -330,6 +339,7 @@ def test_lattice_kernel_threads_on_a_large_lattice():
     assert a.dtype == jnp.float32 and float(jnp.max(jnp.abs(a - b))) < 1e-4
 
 
+@pytest.mark.slow
 def test_lattice_gradients_of_only_what_is_asked_for(scenes):
     """The backward call computes only the cotangents asked for: with scalar ks and kd and
     no model gradient it sums their cotangents per lane (the lean spring pass); a scalar

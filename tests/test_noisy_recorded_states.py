@@ -29,6 +29,7 @@ def noisy_small_jelly():
     return experiment.scene, obs, truth
 
 
+@pytest.mark.slow
 def test_the_noise_of_recorded_positions_is_measured_with_their_starts_fitted(noisy_small_jelly):
     """`start_fitted_noise` against the variance the noise was drawn with: within 10% at the
     truth and at kd 5x its truth (a short segment with fitted starts hardly sees kd), its
@@ -51,6 +52,7 @@ def test_the_noise_of_recorded_positions_is_measured_with_their_starts_fitted(no
         assert abs(variance / obs32.noise_std**2 - 1) < 0.1, variance / obs32.noise_std**2
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["native", "jax"])
 def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(noisy_small_jelly, backend):
     """One segment's residual sum of squares with its start positions fitted, solved without
@@ -86,6 +88,7 @@ def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(nois
     assert fast == pytest.approx(dense, rel=1e-6), (fast, dense, before)
 
 
+@pytest.mark.slow
 def test_fitting_noisy_recorded_start_positions_removes_their_bias(noisy_small_jelly):
     """The small spinning jelly landing over 0.5 s, positions and velocities recorded, 1% noise on
     the positions. Shooting from the recorded states as they are fits kd well above its truth
@@ -139,6 +142,7 @@ def stopped_at_the_final_stage(scene, obs, values, on_iteration=None, identify=T
     return result, planned, saved[-1]
 
 
+@pytest.mark.slow
 def test_auto_fits_the_starts_when_the_answer_leaves_more_than_the_noise(noisy_small_jelly, tmp_path):
     """From kd 7x its truth (the whole horizon's misfit there exceeds the noise), "auto" adds a
     "position_shooting" stage and its answer comes within 3 standard errors of the truth; the
@@ -172,6 +176,7 @@ def test_auto_fits_the_starts_when_the_answer_leaves_more_than_the_noise(noisy_s
         assert progress.refit_frames is None
 
 
+@pytest.mark.slow
 def test_auto_fits_the_starts_in_place_of_longer_segments_from_noisy_states(noisy_small_jelly, tmp_path):
     """Where the measured horizon is shorter than the target (a wide spread: 8 frames of 50),
     the final stage would be longer segments from the noisy recorded states, which leave

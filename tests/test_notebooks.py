@@ -89,6 +89,7 @@ def test_every_notebook_has_its_checks_listed():
     assert sorted(EXPECTED) == [p.name for p in NOTEBOOKS]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
 def test_notebook_executes_and_checks_hold(path):
     notebook = nbformat.read(path, as_version=4)

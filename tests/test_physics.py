@@ -15,6 +15,7 @@ def relative_error(a, b):
     return float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b))))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", SCENES)
 def test_scene_matches_loop_reference_float64(scenes, name):
     scene = scenes[name]
@@ -28,6 +29,7 @@ def test_scene_matches_loop_reference_float64(scenes, name):
     assert np.max(np.abs(x_ref[-1] - x_ref[0])) > 1e-3
 
 
+@pytest.mark.slow
 def test_jelly_reference_covers_ground_contact(scenes):
     """Compare through the impact: the ground term must be exercised."""
     scene = scenes["jelly"]

@@ -80,6 +80,7 @@ def _refused(argv, capsys, words):
     return error
 
 
+@pytest.mark.slow
 def test_predict_never_replaces_a_file_it_did_not_write(fitted, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()

@@ -77,6 +77,7 @@ def test_frames_between_steps_are_interpolated_as_by_hand():
     np.testing.assert_allclose(out.x[1:, 1, 1], expected, rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_recording_loss_gradient_matches_finite_differences(rope):
     recs = make_recordings(rope, 2, 40, noise=1e-3)
     target = js.recording_target(rope, recs, driven=[0, N - 1], smooth=3, loss="huber", huber_scale=1e-3)
@@ -141,6 +142,7 @@ def with_exact_ends(noisy, clean):
     return [js.Recording(t=r.t, x=np.where(ends, c.x, r.x)) for r, c in zip(noisy, clean)]
 
 
+@pytest.mark.slow
 def test_same_model_recordings_give_back_the_true_values(rope):
     """Positions only, 1 mm noise on every frame of the free markers, velocities unknown, ends
     driven along paths known exactly, start states fitted: every value within 2% and within
@@ -165,6 +167,7 @@ def test_same_model_recordings_give_back_the_true_values(rope):
     assert fitted.mean_distance < 4e-3  # the held-out take starts from its noisy start frame
 
 
+@pytest.mark.slow
 def test_the_start_and_driven_path_loss_gradient_matches_finite_differences(rope):
     recs = make_recordings(rope, 2, 30, noise=1e-3)
     target = js.recording_target(rope, recs, driven=[0, N - 1], smooth=3, fit_driven=True)
@@ -206,6 +209,7 @@ def test_noisy_driven_markers_are_told_apart_from_smooth_ones(rope):
     assert warn_of_noisy_driven_paths(exact_target, report).warnings == ()
 
 
+@pytest.mark.slow
 def test_fitted_driven_paths_take_the_driven_markers_noise_out_of_the_parameters(rope):
     """1 mm noise on every marker, the driven ones too. Held as recorded, the noisy paths push
     the rope and the values are fitted to explain it (10 noise seeds: kd 7-31% off under
@@ -262,6 +266,7 @@ def _toml(scene: dict) -> str:
     )
 
 
+@pytest.mark.slow
 def test_fit_and_predict_recording_files(files, capsys):
     out = files / "rope.fit.h5"
     assert main(["fit", str(files / "fit.toml"), "--out", str(out), "--quiet"]) == 0
@@ -333,6 +338,7 @@ def test_a_driven_marker_lost_at_the_start_is_named(rope):
         js.recording_target(rope, [js.Recording(t=rec.t, x=x)], driven=[0, 5])
 
 
+@pytest.mark.slow
 def test_the_ensemble_strategy_fits_recordings():
     """Noise-free recordings, damping known: the smoothed Gauss-Newton stage finds stiffness and drag."""
     scene, target = _noise_free()
@@ -344,6 +350,7 @@ def test_the_ensemble_strategy_fits_recordings():
     assert result.identifiability is not None and result.identifiability.standard_error["ks.stretch"] < 20.0
 
 
+@pytest.mark.slow
 def test_shooting_segments_start_from_the_recordings():
     """The shooting loss on noise-free recordings: small at the truth (not zero: the segments
     start from states estimated from 10 ms frames), larger 25% away on either side, and its

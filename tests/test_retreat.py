@@ -69,6 +69,7 @@ def chain_target():
     return scene, js.synthetic_observations(scene, {"ks": 200.0, "kd": 0.2}, 150, 10)
 
 
+@pytest.mark.slow
 def test_fit_goes_on_from_softer_values_after_an_early_stop(chain_target, monkeypatch):
     """A step tolerance no step can beat stops the stage after two iterations from 1.6x the
     truth; the retreat restarts it from exactly 0.97x or 0.9x the point it stopped at, and

@@ -63,6 +63,7 @@ def test_latin_starts_cover_every_stratum_once_within_the_spread():
     assert latin_starts(init, 9, 10.0, seed=1)[4] == starts[4]  # deterministic
 
 
+@pytest.mark.slow
 def test_a_window_is_the_full_targets_first_frames(rope, recordings):
     target = js.recording_target(rope, recordings, driven=[0], start=2, smooth=3)
     cut = window(target, 20)
@@ -74,6 +75,7 @@ def test_a_window_is_the_full_targets_first_frames(rope, recordings):
     np.testing.assert_allclose(float(short), float(whole), rtol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("factor", [0.1, 10.0, 100.0])
 def test_fits_from_ten_times_off_end_at_the_truth(rope, recordings, factor):
     """From 10x off either way, and from 100x too stiff and draggy for the time step to simulate

@@ -83,6 +83,7 @@ def test_gradient_wrt_a_group_matches_finite_differences(rope):
     assert grad == pytest.approx(fd, rel=1e-6) and abs(grad) > 1e-8
 
 
+@pytest.mark.slow
 def test_fit_recovers_each_groups_stiffness(rope):
     truth = {"ks": {"stretch": 800.0, "bend": 6.0}}
     obs = js.synthetic_observations(rope, truth, steps=400, save_every=20)
@@ -129,6 +130,7 @@ def test_bad_groups_are_one_line_errors(change, words):
     assert "\n" not in message and all(word in message for word in words), message
 
 
+@pytest.mark.slow
 def test_cli_set_names_a_group(tmp_path, capsys):
     assert (
         main(

@@ -146,6 +146,7 @@ def test_selection_by_backend_and_integrator(scenes):
         cloth.with_backend("cuda")
 
 
+@pytest.mark.slow
 def test_integrators_are_configured_objects(scenes):
     chain = scenes["chain"]
     guess_only = js.BackwardEuler(newton=js.NewtonSettings(max_newton=0))
