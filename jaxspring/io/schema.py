@@ -48,6 +48,8 @@ def read_toml(path: Path, what: str) -> dict:
         line = data.count(b"\n", 0, exc.start) + 1
         problem = f"byte 0x{data[exc.start]:02x} on line {line} is not UTF-8"
         raise InputError("toml", problem, "save the file as UTF-8 text", source=str(path)) from None
+    if _nesting(text) > MAX_TOML_NESTING:  # not left to the interpreter's recursion limit
+        raise InputError("toml", "nests arrays or tables too deeply", "flatten the file", source=str(path))
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -244,3 +246,33 @@ def string_list(value):
     if not isinstance(value, list):
         raise Bad("must be a list of strings", 'write ["a", "b"]')
     return [string(v) for v in value]
+
+
+MAX_TOML_NESTING = 100
+"""Deepest nesting of arrays and inline tables a scene or experiment file may have."""
+
+
+def _nesting(text: str) -> int:
+    """The deepest nesting of `[` and `{` in TOML `text`, outside strings and comments."""
+    depth = deepest = 0
+    quote, escaped, comment = None, False, False
+    for ch in text:
+        if comment:
+            comment = ch != "\n"
+        elif quote:
+            if escaped:
+                escaped = False
+            elif ch == "\\" and quote == '"':
+                escaped = True
+            elif ch == quote:
+                quote = None
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "#":
+            comment = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
