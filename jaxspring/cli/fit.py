@@ -170,7 +170,8 @@ def command(args):
         }
     for path in (out, plot):
         check_output(path, inputs)
-    held_out = _held_out(experiment, observations)  # checked before the fit, not after it
+    fitted_markers = getattr(observations, "marker_names", None) or None  # recordings' names (None: a trajectory)
+    held_out = _held_out(experiment, fitted_markers)  # checked before the fit, not after it
     progress = load_fit_progress(out, config, names) if args.resume else None
     existed = out.exists()
     present = scene.model.parameter_values(scene.params)
@@ -248,11 +249,11 @@ def command(args):
     plot_fit(result, plot)
     print(result.table())
     if held_out:
-        _evaluate(experiment, result, held_out, getattr(observations, "marker_names", None) or None)
+        _evaluate(experiment, result, held_out, fitted_markers)
     print(f"wrote {out} and {plot}")
 
 
-def _held_out(experiment, observations) -> list:
+def _held_out(experiment, marker_names) -> list:
     """The experiment's `[evaluate]` recordings, read, their markers matched by name to the
     fitted ones, and checked against its markers, driven markers and start frame (each problem
     an InputError naming the file)."""
@@ -271,7 +272,7 @@ def _held_out(experiment, observations) -> list:
                 experiment.start,
                 experiment.smooth,
                 names=(Path(path).stem,),
-                marker_names=getattr(observations, "marker_names", None) or None,
+                marker_names=marker_names,
             )
         except InputError as exc:
             raise exc.within(str(path), "evaluate") from None

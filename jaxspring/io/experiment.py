@@ -118,13 +118,12 @@ class Experiment:
 
 def recording_paths(patterns, base: Path, field: str) -> tuple:
     """Files matching `patterns` (paths or globs, relative to `base`), sorted, each once."""
-    found = []
+    found, seen = [], set()
     for pattern in patterns:
         full = pattern if Path(pattern).is_absolute() else str(base / pattern)
         matches = sorted(glob.glob(full)) if glob.has_magic(pattern) else ([full] if Path(full).exists() else [])
         if not matches:
             raise InputError(field, f"{pattern!r} matches no file (looked in {base})", "fix the path or glob")
-        seen = {Path(m).resolve() for m in found}
         for m in matches:  # one file under two names (a glob and a path, a link) counts once
             if Path(m).resolve() not in seen:
                 found.append(m)
