@@ -341,3 +341,29 @@ def test_a_cable_through_markers_in_a_line_spaced_one_to_two_is_finite():
         positions = np.array(cable.scene["particles"]["x"])
         assert np.isfinite(positions).all()
         np.testing.assert_allclose(positions[cable.markers], marks, atol=1e-12)  # through every marker
+
+
+def test_a_band_too_large_for_memory_and_a_marker_count_mismatch_are_one_line(fitted, tmp_path, capsys):
+    out = tmp_path / "out"
+    _refused(
+        [
+            "predict",
+            str(fitted / "rope.fit.h5"),
+            str(fitted / "held.h5"),
+            "--out-dir",
+            str(out),
+            "--bands",
+            "10" + "0" * 12,
+        ],
+        capsys,
+        "of memory",
+    )
+    assert not out.exists()
+    rec = _recordings(1)[0]
+    js.save_recording(tmp_path / "three.h5", js.Recording(t=rec.t, x=rec.x[:, :3]))
+    _refused(
+        ["predict", str(fitted / "rope.fit.h5"), str(tmp_path / "three.h5"), "--out-dir", str(out)], capsys, "three"
+    )
+    scene = js.scene_from_dict(ROPE)
+    with pytest.raises(js.InputError, match="short has 3 markers but long has 4"):
+        js.recording_target(scene, [rec, js.Recording(t=rec.t, x=rec.x[:, :3])], names=("long", "short"), driven=[0])
