@@ -111,8 +111,8 @@ def run_variant(
     clock = time.perf_counter()
     result = js.fit(scene, target, params, init=init, **budget)
     fit_s = time.perf_counter() - clock
-    fitted = js.summarise(js.predict(scene, result.final, held, **options))
-    started = js.summarise(js.predict(scene, init, held, **options))
+    fitted = js.fitting.summarise(js.predict(scene, result.final, held, **options))
+    started = js.fitting.summarise(js.predict(scene, init, held, **options))
     return dict(
         name=name,
         particles=int(scene.state.x.shape[0]),
@@ -160,7 +160,7 @@ def run_dense(
         clock = time.perf_counter()
         r = js.fit(scene, target, params, init=points[i], starts=1)
         final = {n: float(r.final[n]) for n in params}
-        error = js.summarise(js.predict(scene, final, held, **options)).mean_coordinate_error
+        error = js.fitting.summarise(js.predict(scene, final, held, **options)).mean_coordinate_error
         fitted.append(
             dict(
                 start=points[i],

@@ -1,7 +1,7 @@
 """The figure of docs/fitting.md's "final stage's horizon": why a fit of a chaotic target
 ends on segments, on the jelly scene (7 x 6 x 5) spinning through 2.5 s of impacts.
 
-Left: the nonlinearity (`js.smooth_horizon`, 10% cloud) of stretches from each of the 8
+Left: the nonlinearity (`jaxspring.fit.horizon.smooth_horizon`, 10% cloud) of stretches from each of the 8
 recorded start states, against the stretch's length, with the limit; the horizon is where
 the first curve crosses it. Right: the misfit along ks within 10% of the truth (kd at its
 truth), over the whole 2.5 s and over the segments the horizon gives, each scaled to its
@@ -27,7 +27,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxspring as js  # noqa: E402
-from jaxspring.fit.horizon import NONLINEARITY_LIMIT  # noqa: E402
+from jaxspring.fit.horizon import NONLINEARITY_LIMIT, smooth_horizon  # noqa: E402
 from jaxspring.fit.objective import loss_function, target_data  # noqa: E402
 from jaxspring.fit.settings import Stage, over_horizon  # noqa: E402
 
@@ -48,7 +48,7 @@ def main() -> None:
     args = parser.parse_args()
     scene = js.load_scene(ROOT / "scenes" / "jelly.toml")
     obs = js.synthetic_observations(scene, TRUTH, steps=2500, save_every=10)
-    horizon = js.smooth_horizon(scene, obs, list(TRUTH), TRUTH)
+    horizon = smooth_horizon(scene, obs, list(TRUTH), TRUTH)
     whole = Stage("direct", horizon.total)
     segments = over_horizon(whole, horizon.frames)
     offsets = np.linspace(-0.1, 0.1, 81)

@@ -114,7 +114,7 @@ def lineax_gmres(matvec, b, tol, restart, maxiter):
 
 
 def backward_euler(chain, repeats):
-    scene = chain.with_integrator(js.BackwardEuler())
+    scene = chain.with_integrator(js.sim.BackwardEuler())
     model, state = scene.model, scene.state
 
     def loss(ks):

@@ -1,8 +1,10 @@
 """jaxspring: a differentiable mass-spring simulator in JAX, built for parameter identification.
 
-The public namespace holds what users call; the layers live in subpackages:
-`sim` (the physics), `steppers` (how steps run, one per backend), `io` (files),
-`fit` (identification), `bench` (benchmarks), `cli` (the command line).
+The top-level namespace holds the everyday names (at most 30); the rest live in three
+namespaces: `js.sim` (models, force terms, integrators, stability, device batches),
+`js.io` (every reader and writer) and `js.fitting` (what fits return and the plots of
+them). The code's layers are subpackages: `sim` (the physics), `steppers` (how steps run,
+one per backend), `io` (files), `fit` (identification), `bench` (benchmarks), `cli`.
 
 Example:
     >>> import jaxspring as js
@@ -10,127 +12,85 @@ Example:
     >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
 """
 
+import importlib
+import warnings as _warnings
+
+from . import fitting, io, sim
 from .errors import BlowUpError, FileFormatError, InputError, JaxspringError
 from .fit import (
-    FitProgress,
     FitResult,
     FitSettings,
-    Horizon,
-    Identifiability,
-    Observations,
     fit,
     fit_batch,
     identifiability,
     observations_from_trajectory,
-    smooth_horizon,
     synthetic_observations,
 )
-from .fit.predict import ErrorSummary, Prediction, predict, summarise
-from .fit.recordings import RecordingTarget, recording_target
-from .io.cable import CableModel, cable_scene
-from .io.experiment import Experiment, load_experiment, observations_from_file
-from .io.fit_file import load_fit_progress, save_fit
+from .fit.predict import predict
+from .fit.recordings import recording_target
+from .io.cable import cable_scene
+from .io.experiment import load_experiment
 from .io.recording import Recording, load_recording, save_recording
 from .io.scene import builtin_scenes, load_scene, scene_from_dict
 from .io.trajectory import load_trajectory, save_trajectory
-from .render import plot_error_summary, plot_fit, plot_prediction, render
-from .sim.driven import Drive
-from .sim.forces import register_term, safe_norm
-from .sim.integrators import (
-    INTEGRATORS,
-    RK4,
-    BackwardEuler,
-    Integrator,
-    NewtonSettings,
-    SemiImplicitEuler,
-    Verlet,
-)
-from .sim.model import Model, make_model
-from .sim.params import Params
-from .sim.rollout import energy, final_state, rollout
-from .sim.scene import Scene
-from .sim.sharding import batch_mesh, shard_batch
-from .sim.stability import BlowUp, StabilityEstimate, estimate_stability, find_blowup, stable_dt
-from .sim.state import State, Trajectory
-from .sim.topology import lattice_faces, lattice_positions, lattice_springs
+from .render import render
+from .sim import Params, Scene, State, Trajectory, rollout
 from .version import __version__  # noqa: F401  (jaxspring.__version__)
 
 __all__ = [
     # simulate
     "Scene",
     "load_scene",
-    "builtin_scenes",
     "scene_from_dict",
-    "Model",
-    "make_model",
-    "Params",
-    "State",
-    "Trajectory",
+    "builtin_scenes",
     "rollout",
-    "Drive",
-    "final_state",
-    "energy",
-    "safe_norm",
-    "register_term",
-    "lattice_springs",
-    "lattice_positions",
-    "lattice_faces",
-    # integrators
-    "Integrator",
-    "SemiImplicitEuler",
-    "Verlet",
-    "RK4",
-    "BackwardEuler",
-    "NewtonSettings",
-    "INTEGRATORS",
-    # stability
-    "estimate_stability",
-    "stable_dt",
-    "find_blowup",
-    "StabilityEstimate",
-    "BlowUp",
-    # batches over devices
-    "batch_mesh",
-    "shard_batch",
-    # files and pictures
+    "State",
+    "Params",
+    "Trajectory",
+    # files
     "save_trajectory",
     "load_trajectory",
     "Recording",
-    "RecordingTarget",
-    "recording_target",
-    "predict",
-    "cable_scene",
-    "CableModel",
-    "summarise",
-    "ErrorSummary",
-    "plot_error_summary",
-    "Prediction",
-    "plot_prediction",
     "load_recording",
     "save_recording",
-    "render",
-    "plot_fit",
-    # fitting
+    "load_experiment",
+    # fit
     "fit",
     "fit_batch",
     "FitSettings",
     "FitResult",
-    "FitProgress",
-    "Observations",
-    "observations_from_trajectory",
     "synthetic_observations",
-    "observations_from_file",
+    "observations_from_trajectory",
     "identifiability",
-    "smooth_horizon",
-    "Horizon",
-    "Identifiability",
-    "Experiment",
-    "load_experiment",
-    "save_fit",
-    "load_fit_progress",
+    # recordings: scene, target, prediction
+    "cable_scene",
+    "recording_target",
+    "predict",
+    "render",
     # errors
     "JaxspringError",
     "InputError",
     "FileFormatError",
     "BlowUpError",
 ]
+
+# Names that were top-level before the namespaces: still found, with a warning naming their place now.
+_MOVED = {
+    **{name: "sim" for name in sim.__all__ if name not in __all__},
+    **{name: "io" for name in io.__all__ if name not in __all__},
+    **{name: "fitting" for name in fitting.__all__ if name not in __all__},
+}
+
+
+_INTERNAL = {"smooth_horizon": "jaxspring.fit.horizon"}  # a stage's measurement, not an entry point
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        where = _MOVED[name]
+        _warnings.warn(f"js.{name} is now js.{where}.{name}", DeprecationWarning, stacklevel=2)
+        return getattr(globals()[where], name)
+    if name in _INTERNAL:
+        _warnings.warn(f"js.{name} is internal now: {_INTERNAL[name]}.{name}", DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(_INTERNAL[name]), name)
+    raise AttributeError(f"module 'jaxspring' has no attribute {name!r}")

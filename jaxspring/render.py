@@ -156,7 +156,7 @@ def plot_fit(result, out) -> Path:
     """Loss and parameter histories of a fit as a PNG, written atomically.
 
     Example:
-        >>> js.plot_fit(result, "chain.fit.png")
+        >>> js.fitting.plot_fit(result, "chain.fit.png")
     """
     plt = pyplot()
 
@@ -187,7 +187,7 @@ def plot_prediction(prediction, out, markers: int = 4, writer: str | None = None
     where present) and the marker error against time, as a PNG written atomically.
 
     Example:
-        >>> js.plot_prediction(js.predict(scene, values, [rec], driven=[0, 11])[0], "take1.png")
+        >>> js.fitting.plot_prediction(js.predict(scene, values, [rec], driven=[0, 11])[0], "take1.png")
     """
     plt = pyplot()
     p = prediction
@@ -222,7 +222,7 @@ def plot_error_summary(summary, predictions, out, writer: str | None = None) -> 
 
     Example:
         >>> out = js.predict(scene, values, recordings, driven=[0, 1, 10, 11])
-        >>> js.plot_error_summary(js.summarise(out), out, "errors.png")
+        >>> js.fitting.plot_error_summary(js.fitting.summarise(out), out, "errors.png")
     """
     plt = pyplot()
     fig, (bars, curve) = plt.subplots(1, 2, figsize=(11, 3.8), dpi=90)

@@ -150,12 +150,12 @@ def test_bench_speed_quick(tmp_path, capsys):
         want = _numpy_positions(scene, 200)
         scale = np.max(np.abs(want - np.asarray(scene.state.x)))
         assert scale > 0.1  # the workload moved
-        x64 = js.final_state(scene.model, scene.params, scene.state, steps=200).x
+        x64 = js.sim.final_state(scene.model, scene.params, scene.state, steps=200).x
         assert np.max(np.abs(np.asarray(x64) - want)) < 1e-9 * np.max(np.abs(want))
         to32 = lambda tree: jax.tree_util.tree_map(  # noqa: E731
             lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree
         )
-        x32 = np.asarray(js.final_state(to32(scene.model), to32(scene.params), to32(scene.state), steps=200).x)
+        x32 = np.asarray(js.sim.final_state(to32(scene.model), to32(scene.params), to32(scene.state), steps=200).x)
         error32 = float(np.max(np.abs(x32 - want)))
         assert error32 < 1e-4
         for name, make in (("jax_segment_sum", peers.jax_segment_sum), ("numpy", peers.numpy_step)):

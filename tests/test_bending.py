@@ -175,7 +175,7 @@ def test_the_stability_estimate_of_a_straight_chain_sees_the_bending_stiffness()
     doc["physics"].update(ks=1e-3, kd=0.0)  # stretching far softer than bending
     doc["springs"] = {"pairs": [[i, i + 1] for i in range(n - 1)]}
     scene = js.scene_from_dict(doc)
-    estimate = js.estimate_stability(scene.model, scene.params, scene.state, iterations=400)
+    estimate = js.sim.estimate_stability(scene.model, scene.params, scene.state, iterations=400)
     bound = math.sqrt(16 * kb / (length**3 * mass))
     assert 0.97 * bound < estimate.omega_max <= 1.0001 * bound
 

@@ -26,7 +26,7 @@ def test_run_writes_file_and_summary(tmp_path, capsys):
     assert float(scene.params.ks) == 600.0
     assert traj.x.shape == (21, 20, 3)
     # the summary's end energy is the file's last frame's energy
-    e_end = float(js.energy(scene.model, scene.params, traj.frame(-1)))
+    e_end = float(js.sim.energy(scene.model, scene.params, traj.frame(-1)))
     printed = float(re.search(r"-> (\S+) J", text).group(1))
     assert printed == pytest.approx(e_end, rel=1e-5)
 
@@ -56,7 +56,7 @@ def test_blowup_reports_exact_step_and_stable_dt(tmp_path, capsys):
     scene = js.load_scene("chain").with_params(ks=4e6)
     traj = js.rollout(scene.model, scene.params, scene.state, steps=step, save_every=1)
     limit = energy_threshold(scene.model, scene.params, scene.state)
-    e = np.asarray(js.energy(scene.model, scene.params, traj))
+    e = np.asarray(js.sim.energy(scene.model, scene.params, traj))
     finite = np.isfinite(np.asarray(traj.x)).all(axis=(1, 2))
     bad = ~finite | ~np.isfinite(e) | (e > limit)
     assert bad[step] and not bad[:step].any()
@@ -65,24 +65,26 @@ def test_blowup_reports_exact_step_and_stable_dt(tmp_path, capsys):
 def test_find_blowup_python_api(scenes):
     scene = scenes["chain"].with_params(ks=4e6)
     traj = js.rollout(scene.model, scene.params, scene.state, steps=1000, save_every=50)
-    problem = js.find_blowup(scene.model, scene.params, traj)
+    problem = js.sim.find_blowup(scene.model, scene.params, traj)
     assert problem is not None and 0 < problem.step <= 1000
     assert problem.stability.dt_bound < scene.model.dt
     healthy = scenes["chain"]
     ok = js.rollout(healthy.model, healthy.params, healthy.state, steps=1000, save_every=50)
-    assert js.find_blowup(healthy.model, healthy.params, ok) is None
+    assert js.sim.find_blowup(healthy.model, healthy.params, ok) is None
 
 
 def test_stable_dt_estimate_single_spring_hand_calculation():
     # one free particle of mass 2 on a spring ks = 50 to a pinned one: omega^2 = ks / m = 25
-    model = js.make_model([[0, 1]], [1.0, 2.0], positions=[[0, 0, 0], [1, 0, 0]], pinned=[0], gravity=False, dt=0.01)
+    model = js.sim.make_model(
+        [[0, 1]], [1.0, 2.0], positions=[[0, 0, 0], [1, 0, 0]], pinned=[0], gravity=False, dt=0.01
+    )
     params = js.Params(ks=50.0, kd=0.0)
     state = js.State(x=jnp.array([[0.0, 0, 0], [1.0, 0, 0]]), v=jnp.zeros((2, 3)))
-    estimate = js.estimate_stability(model, params, state)
+    estimate = js.sim.estimate_stability(model, params, state)
     assert estimate.omega_max == pytest.approx(5.0, rel=1e-6)
     assert estimate.dt_bound == pytest.approx(0.4, rel=1e-6)
     # with damping kd = 4: c = kd / m = 2; (omega dt)^2 + 2 c dt = 4 -> dt = (-2 + sqrt(4 + 100)) / 25
-    damped = js.estimate_stability(model, params.replace(kd=4.0), state)
+    damped = js.sim.estimate_stability(model, params.replace(kd=4.0), state)
     assert damped.dt_bound == pytest.approx((-2 + np.sqrt(104)) / 25, rel=1e-6)
 
 

@@ -28,7 +28,7 @@ WORKER = textwrap.dedent(
     assert jax.process_count() == 2 and jax.device_count() == 2 and jax.local_device_count() == 1
     rope = js.scene_from_dict(ROPE)
     target = js.recording_target(rope, make_recordings(rope, 4, 30, noise=5e-4), driven=[0, 5], smooth=3)
-    placed = js.shard_batch(target_data(target))["x"]
+    placed = js.sim.shard_batch(target_data(target))["x"]
     assert not placed.is_fully_addressable and len(placed.sharding.device_set) == 2
     result = js.fit(rope, target, ["ks.stretch"], {"ks.stretch": 300.0}, iterations=10, identify=False, starts=1)
     print("RESULT", json.dumps(float(result.final["ks.stretch"])), flush=True)

@@ -34,7 +34,7 @@ def rope():
 
 def knots(times):
     """A drive of particle 0 along `path` with knots at `times` (linear in between)."""
-    return js.Drive(particles=(0,), t=jnp.asarray(times), x=jnp.asarray(path(np.asarray(times)))[:, None, :])
+    return js.sim.Drive(particles=(0,), t=jnp.asarray(times), x=jnp.asarray(path(np.asarray(times)))[:, None, :])
 
 
 def test_driven_rope_matches_numpy_loop(rope):
@@ -71,7 +71,7 @@ def test_galilean_invariance_for_every_integrator(integrator):
     pinned = js.scene_from_dict(dict(spec, particles=dict(spec["particles"], drag=False, pinned=[0])))
     pinned = pinned.with_integrator(integrator)
     u = np.array([0.3, -0.2, 0.1])
-    drive = js.Drive(particles=(0,), t=jnp.array([0.0, 1.0]), x=jnp.asarray([[[0.0, 0, 0]], [u]]))
+    drive = js.sim.Drive(particles=(0,), t=jnp.array([0.0, 1.0]), x=jnp.asarray([[[0.0, 0, 0]], [u]]))
     moving = js.State(x=scene.state.x, v=scene.state.v + jnp.asarray(u))
     driven = js.rollout(scene.model, scene.params, moving, steps=100, save_every=10, drive=drive)
     still = js.rollout(pinned.model, pinned.params, pinned.state, steps=100, save_every=10)
@@ -111,7 +111,7 @@ def test_native_lattice_drives_on_the_pure_jax_stepper_with_one_notice():
     scene = js.scene_from_dict(_chain_dict()).with_backend("native")
     if scene.model.stepper.name != "native_lattice":
         pytest.skip("native kernels not built")
-    drive = js.Drive(particles=(0,), t=jnp.array([0.0, 1.0]), x=jnp.asarray([[[0.0, 0, 0]], [[0.0, 0.5, 0]]]))
+    drive = js.sim.Drive(particles=(0,), t=jnp.array([0.0, 1.0]), x=jnp.asarray([[[0.0, 0, 0]], [[0.0, 0.5, 0]]]))
     with pytest.warns(UserWarning, match="generic pure-JAX stepper"):
         native = js.rollout(scene.model, scene.params, scene.state, steps=50, save_every=10, drive=drive)
     plain = scene.with_backend("jax")

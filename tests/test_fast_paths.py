@@ -25,8 +25,8 @@ def test_lattice_scenes_take_the_structured_path(name):
 def test_explicit_topologies_take_the_generic_path():
     assert js.load_scene("mass_spring").model.lattice is None
     # a lattice whose springs are not whole neighbour families (one removed) falls back
-    springs = js.lattice_springs((4, 3), ["structural"])[1:]
-    model = js.make_model(springs, 1.0, positions=np.zeros((12, 3)) + np.arange(12)[:, None], lattice_shape=(4, 3))
+    springs = js.sim.lattice_springs((4, 3), ["structural"])[1:]
+    model = js.sim.make_model(springs, 1.0, positions=np.zeros((12, 3)) + np.arange(12)[:, None], lattice_shape=(4, 3))
     assert model.lattice is None
 
 

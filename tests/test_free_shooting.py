@@ -43,7 +43,7 @@ def test_positions_only_multiple_shooting_recovers_a_2s_chain(chain):
     x, v = result.estimated["segment_x"], result.estimated["segment_v"]
     params = chain.model.params_with(chain.params, result.final)
     for j in range(len(x) - 1):
-        end = js.final_state(chain.model, params, js.State(x=jnp.asarray(x[j]), v=jnp.asarray(v[j])), steps=200)
+        end = js.sim.final_state(chain.model, params, js.State(x=jnp.asarray(x[j]), v=jnp.asarray(v[j])), steps=200)
         np.testing.assert_allclose(end.x, x[j + 1], atol=1e-10)
         np.testing.assert_allclose(end.v, v[j + 1], atol=1e-8)
     np.testing.assert_allclose(x[:, obs.particles], obs.x[::10][: len(x)], atol=1e-10)  # and on the observations

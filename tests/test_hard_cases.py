@@ -18,7 +18,7 @@ def hard(name):
 def run(scene, integrator, steps, every, dt=None):
     model = scene.model.replace(integrator=integrator, dt=dt or scene.model.dt)
     traj = js.rollout(model, scene.params, scene.state, steps=steps, save_every=every)
-    return model, traj, js.find_blowup(model, scene.params, traj)
+    return model, traj, js.sim.find_blowup(model, scene.params, traj)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def damped_chain():
 @pytest.mark.parametrize("integrator", EXPLICIT)
 def test_explicit_integrators_blow_up_where_predicted(request, case, integrator):
     scene = request.getfixturevalue(case)
-    estimate = js.estimate_stability(scene.model, scene.params, scene.state)
+    estimate = js.sim.estimate_stability(scene.model, scene.params, scene.state)
     bound = estimate.bounds[integrator]
     assert bound < scene.model.dt  # the analyser predicts the blow-up at the scene's dt
     _, _, problem = run(scene, integrator, 400, 10)
@@ -53,7 +53,7 @@ def test_backward_euler_stays_bounded(request, case, steps):
     scene = request.getfixturevalue(case)
     model, traj, problem = run(scene, "backward_euler", steps, steps // 4)
     assert problem is None
-    e = np.asarray(js.energy(model, scene.params, traj))
+    e = np.asarray(js.sim.energy(model, scene.params, traj))
     assert np.all(np.isfinite(np.asarray(traj.x)))
     assert np.all(e <= e[0] + 1e-9 * abs(e[0]))  # nothing adds energy; backward Euler only removes it
 
@@ -77,7 +77,7 @@ def test_fast_jelly_stays_stable_and_loses_energy():
     for integrator in EXPLICIT:
         model, traj, problem = run(scene, integrator, 300, 10)
         assert problem is None
-        e = np.asarray(js.energy(model, scene.params, traj))
+        e = np.asarray(js.sim.energy(model, scene.params, traj))
         assert e[-1] < 0.7 * e[0]  # the impact dissipates (contact and spring damping)
         y = np.asarray(traj.x[..., 1])
         assert -0.2 < y.min() < -0.05  # sinks ~0.1 m into the penalty ground, not through it
@@ -87,7 +87,7 @@ def test_undamped_chain_conserves_energy_and_is_chaotic():
     scene = hard("undamped_chain")
     assert "drag" not in scene.model.terms
     model, traj, _ = run(scene, "verlet", 15000, 500)
-    e = np.asarray(js.energy(model, scene.params, traj))
+    e = np.asarray(js.sim.energy(model, scene.params, traj))
     weight_scale = 20 * 9.81 * 10  # total weight times half the chain's length [J]
     assert np.max(np.abs(e - e[0])) < 1e-3 * weight_scale
     nudged = scene.with_state(js.State(x=scene.state.x.at[-1, 1].add(1e-9), v=scene.state.v))
@@ -100,14 +100,14 @@ def test_undamped_chain_conserves_energy_and_is_chaotic():
 def test_fine_cloth_is_a_100_by_100_lattice_and_runs():
     scene = hard("fine_cloth")
     assert scene.model.particle_count == 10_000 and scene.lattice_shape == (100, 100)
-    estimate = js.estimate_stability(scene.model, scene.params, scene.state)
+    estimate = js.sim.estimate_stability(scene.model, scene.params, scene.state)
     assert estimate.margin > 1
     _, traj, problem = run(scene, "semi_implicit_euler", 20, 10)
     assert problem is None and np.all(np.isfinite(np.asarray(traj.x)))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("integrator", list(js.INTEGRATORS))
+@pytest.mark.parametrize("integrator", list(js.sim.INTEGRATORS))
 def test_coincident_particles_finite_forces_and_gradients(integrator):
     scene = hard("coincident").with_integrator(integrator)
     x = np.asarray(scene.state.x)

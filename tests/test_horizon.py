@@ -141,7 +141,9 @@ def test_the_final_stage_for_a_horizon():
     assert over_horizon(Stage("direct", 200), 89) == Stage("shooting", 66)  # 3 x 66, 2 frames left out
     assert over_horizon(whole, 136, recorded=False, segment_frames=10) == Stage("free_shooting", 10)
     assert over_horizon(whole, 6, recorded=False, segment_frames=10) == Stage("free_shooting", 6)
-    target = js.Observations(x=np.zeros((151, 1, 3)), particles=np.ones(1, int), save_every=1, initial_state=None)
+    target = js.fitting.Observations(
+        x=np.zeros((151, 1, 3)), particles=np.ones(1, int), save_every=1, initial_state=None
+    )
     assert needs_horizon([Stage("shooting", 10), whole], target)
     assert needs_horizon([Stage("direct", 19), Stage("direct", 150)], target)
     assert not needs_horizon([whole], target) and not needs_horizon([Stage("free_shooting", 10)], target)

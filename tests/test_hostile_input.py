@@ -69,7 +69,7 @@ def test_rollout_promotes_a_float32_state_on_a_float64_model(scenes):
     want = js.rollout(scene.model, scene.params, cast, steps=50, save_every=10)
     assert got.x.dtype == jnp.float64
     np.testing.assert_array_equal(np.asarray(got.x), np.asarray(want.x))
-    end = js.final_state(scene.model, scene.params, low, steps=50)
+    end = js.sim.final_state(scene.model, scene.params, low, steps=50)
     np.testing.assert_array_equal(np.asarray(end.x), np.asarray(want.x[-1]))
 
 
@@ -180,7 +180,7 @@ def test_rollout_of_zero_steps_is_frame_0(scenes):
     assert traj.x.shape == (1, *scene.state.x.shape) and traj.t.shape == (1,) and float(traj.t[0]) == 0.0
     np.testing.assert_array_equal(np.asarray(traj.x[0]), np.asarray(scene.state.x))
     np.testing.assert_array_equal(np.asarray(traj.v[0]), np.asarray(scene.state.v))
-    end = js.final_state(scene.model, scene.params, scene.state, steps=0)
+    end = js.sim.final_state(scene.model, scene.params, scene.state, steps=0)
     np.testing.assert_array_equal(np.asarray(end.x), np.asarray(scene.state.x))
 
 
@@ -272,7 +272,7 @@ def test_rollout_checks_params_made_with_replace(scenes, change, message):
     with pytest.raises(js.InputError, match=message):
         js.rollout(scene.model, scene.params.replace(**change), scene.state, steps=10)
     with pytest.raises(js.InputError, match=message):
-        js.final_state(scene.model, scene.params.replace(**change), scene.state, steps=10)
+        js.sim.final_state(scene.model, scene.params.replace(**change), scene.state, steps=10)
 
 
 def test_a_state_of_the_wrong_shape_is_named(scenes):
@@ -331,9 +331,9 @@ def test_spring_and_pinned_indices_beyond_int64(capsys, tmp_path, pinned, pairs,
 )
 def test_api_spring_indices_are_checked_whatever_their_type(springs, message):
     with pytest.raises(js.InputError, match=message):
-        js.make_model(springs=springs, mass=[1.0, 1.0], rest_length=[1.0])
+        js.sim.make_model(springs=springs, mass=[1.0, 1.0], rest_length=[1.0])
     with pytest.raises(js.InputError, match="pinned: particle index 18446744073709551616 out of range"):
-        js.make_model(springs=[[0, 1]], mass=[1.0, 1.0], rest_length=[1.0], pinned=[2**64])
+        js.sim.make_model(springs=[[0, 1]], mass=[1.0, 1.0], rest_length=[1.0], pinned=[2**64])
 
 
 def test_wording_of_refusals_names_the_real_field_and_reason(inputs, capsys, tmp_path):

@@ -22,7 +22,7 @@ SWEEPS = {
 
 def final_positions(scene, integrator, dt, horizon):
     model = scene.model.replace(integrator=integrator, dt=dt)
-    return np.asarray(js.final_state(model, scene.params, scene.state, int(round(horizon / dt))).x)
+    return np.asarray(js.sim.final_state(model, scene.params, scene.state, int(round(horizon / dt))).x)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_convergence_order(scenes, references, scene_name, integrator):
 
 def radial_oscillator(integrator, dt, kd=0.0):
     """A particle on a spring to a pinned anchor, moving only along the spring: x'' = -(ks/m) x."""
-    model = js.make_model(
+    model = js.sim.make_model(
         [[0, 1]], [1.0, 1.0], positions=[[0, 0, 0], [1, 0, 0]], pinned=[0], gravity=False, dt=dt, integrator=integrator
     )
     params = js.Params(ks=4.0, kd=kd)  # omega = 2 rad/s
@@ -63,7 +63,7 @@ def radial_oscillator(integrator, dt, kd=0.0):
 def test_symplectic_energy_bounded_without_drift(integrator):
     model, params, state = radial_oscillator(integrator, 1e-3)
     traj = js.rollout(model, params, state, steps=100_000, save_every=10)
-    e = np.asarray(js.energy(model, params, traj))
+    e = np.asarray(js.sim.energy(model, params, traj))
     error = (e - e[0]) / e[0]
     bound = {"semi_implicit_euler": 2e-3, "verlet": 1e-6}[integrator]  # O(omega dt) and O((omega dt)^2)
     assert np.max(np.abs(error)) < bound
@@ -81,7 +81,7 @@ def test_energy_loss_matches_amplification_factor(integrator):
     factor = {"rk4": 1 - y**6 / 72 + y**8 / 576, "backward_euler": 1 / (1 + y**2)}[integrator]
     model, params, state = radial_oscillator(integrator, dt)
     traj = js.rollout(model, params, state, steps=steps, save_every=steps)
-    e = np.asarray(js.energy(model, params, traj))
+    e = np.asarray(js.sim.energy(model, params, traj))
     assert e[-1] / e[0] == pytest.approx(factor**steps, rel=1e-6)
     assert e[-1] < e[0]
 
@@ -126,16 +126,16 @@ def test_backward_euler_under_vmap_matches_single_rollouts(scenes):
 
 def test_stable_dt_test_equation():
     # undamped: semi-implicit Euler and Verlet 2/w, RK4 2 sqrt(2)/w; backward Euler unconditional
-    assert js.stable_dt("semi_implicit_euler", 100.0) == pytest.approx(0.02, rel=1e-6)
-    assert js.stable_dt("verlet", 100.0) == pytest.approx(0.02, rel=1e-6)
-    assert js.stable_dt("rk4", 100.0) == pytest.approx(2 * math.sqrt(2) / 100, rel=1e-6)
-    assert math.isinf(js.stable_dt("backward_euler", 100.0, 50.0))
+    assert js.sim.stable_dt("semi_implicit_euler", 100.0) == pytest.approx(0.02, rel=1e-6)
+    assert js.sim.stable_dt("verlet", 100.0) == pytest.approx(0.02, rel=1e-6)
+    assert js.sim.stable_dt("rk4", 100.0) == pytest.approx(2 * math.sqrt(2) / 100, rel=1e-6)
+    assert math.isinf(js.sim.stable_dt("backward_euler", 100.0, 50.0))
     # damped semi-implicit Euler: (w dt)^2 + 2 c dt = 4
-    assert js.stable_dt("semi_implicit_euler", 100.0, 20.0) == pytest.approx(
+    assert js.sim.stable_dt("semi_implicit_euler", 100.0, 20.0) == pytest.approx(
         (-20 + math.sqrt(400 + 4e4)) / 1e4, rel=1e-6
     )
     # pure damping: explicit Euler on v' = -c v needs c dt <= 2
-    assert js.stable_dt("semi_implicit_euler", 0.0, 100.0) == pytest.approx(0.02, rel=1e-5)
+    assert js.sim.stable_dt("semi_implicit_euler", 0.0, 100.0) == pytest.approx(0.02, rel=1e-5)
 
 
 def on_the_ground(scene):
@@ -147,7 +147,7 @@ def on_the_ground(scene):
 def blows_up(scene, integrator, dt, steps=2000):
     model = scene.model.replace(integrator=integrator, dt=dt)
     traj = js.rollout(model, scene.params, scene.state, steps=steps, save_every=10)
-    return js.find_blowup(model, scene.params, traj)
+    return js.sim.find_blowup(model, scene.params, traj)
 
 
 CASES = [("chain", "semi_implicit_euler"), ("chain", "verlet"), ("chain", "rk4")]
@@ -158,7 +158,7 @@ CASES += [("cloth", "semi_implicit_euler"), ("cloth", "verlet"), ("cloth", "rk4"
 @pytest.mark.parametrize("name, integrator", CASES)
 def test_analyser_bound_matches_observed_stability_limit(scenes, name, integrator):
     scene = on_the_ground(scenes["jelly"]) if name == "jelly" else scenes[name]
-    bound = js.estimate_stability(scene.model, scene.params, scene.state).bounds[integrator]
+    bound = js.sim.estimate_stability(scene.model, scene.params, scene.state).bounds[integrator]
     assert blows_up(scene, integrator, 0.8 * bound) is None
     problem = blows_up(scene, integrator, 1.2 * bound)
     assert problem is not None and problem.step > 0

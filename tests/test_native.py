@@ -42,7 +42,7 @@ def random_topology(seed=0, count=30, springs=80):
     pairs = np.array(sorted(pairs))
     rest = rng.uniform(0.0, 2.0, len(pairs))
     rest[:5] = 0.0  # zero-length springs too
-    model = js.make_model(pairs, rng.uniform(0.5, 2.0, count), rest_length=rest, pinned=[0, 1], drag=True, dt=1e-3)
+    model = js.sim.make_model(pairs, rng.uniform(0.5, 2.0, count), rest_length=rest, pinned=[0, 1], drag=True, dt=1e-3)
     params = js.Params(ks=jnp.asarray(rng.uniform(50, 150, len(pairs))), kd=0.3, cd=0.02, gravity=[0.0, -9.81, 0.0])
     state = js.State(x=jnp.asarray(positions), v=jnp.asarray(rng.normal(size=(count, 3)) * 0.1).at[:2].set(0.0))
     return model, params, state
@@ -116,7 +116,7 @@ def test_vmap_and_forward_mode_fallbacks(scenes):
     for i in range(3):
         np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(run(ks[i])), rtol=1e-12, atol=1e-12)
     # jaxspring's own forward-mode users switch to the pure-JAX force
-    assert js.estimate_stability(scene.model, scene.params, scene.state).omega_max > 60
+    assert js.sim.estimate_stability(scene.model, scene.params, scene.state).omega_max > 60
     implicit = scene.with_integrator("backward_euler")
     x = js.rollout(implicit.model, implicit.params, implicit.state, 20, 20).x
     y = js.rollout(implicit.model.replace(backend="jax"), implicit.params, implicit.state, 20, 20).x

@@ -53,7 +53,7 @@ def test_float32_stays_close_to_float64(scenes, name):
 
 
 def two_particles(x_b, v_b, ks=10.0, kd=2.0, rest=4.0):
-    model = js.make_model([[0, 1]], [1.0, 1.0], rest_length=[rest], gravity=False)
+    model = js.sim.make_model([[0, 1]], [1.0, 1.0], rest_length=[rest], gravity=False)
     params = js.Params(ks=ks, kd=kd)
     x = jnp.array([[0.0, 0.0, 0.0], x_b])
     v = jnp.array([[0.0, 0.0, 0.0], v_b])
@@ -70,7 +70,7 @@ def test_spring_force_hand_calculation():
 
 
 def test_drag_gravity_ground_hand_calculation():
-    model = js.make_model(np.zeros((0, 2)), [2.0], rest_length=[], drag=True, ground=True)
+    model = js.sim.make_model(np.zeros((0, 2)), [2.0], rest_length=[], drag=True, ground=True)
     params = js.Params(cd=0.1, gravity=[0.0, -9.81, 0.0], kg=1000.0, kgd=2.0, ground_height=0.0)
     x = jnp.array([[0.0, -0.1, 0.0]])
     v = jnp.array([[3.0, -4.0, 0.0]])
@@ -98,17 +98,17 @@ def test_zero_length_spring_finite_force_and_gradients():
 
 
 def test_safe_norm_gradient_at_zero():
-    assert np.all(np.asarray(jax.grad(lambda d: js.safe_norm(d))(jnp.zeros(3))) == 0.0)
-    assert np.all(np.isfinite(np.asarray(jax.grad(lambda v: jnp.sum(js.safe_norm(v) * v))(jnp.zeros(3)))))
+    assert np.all(np.asarray(jax.grad(lambda d: js.sim.safe_norm(d))(jnp.zeros(3))) == 0.0)
+    assert np.all(np.isfinite(np.asarray(jax.grad(lambda v: jnp.sum(js.sim.safe_norm(v) * v))(jnp.zeros(3)))))
 
 
 def test_undamped_spring_energy_bounded_without_drift():
     # mass_spring geometry, kd = 0, no drag; float64; 1e5 steps of 1e-3 s
-    model = js.make_model([[0, 1]], [1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]], pinned=[0], dt=1e-3)
+    model = js.sim.make_model([[0, 1]], [1.0, 1.0], positions=[[0, 0, 0], [0, -1, 0]], pinned=[0], dt=1e-3)
     params = js.Params(ks=2.0, kd=0.0, gravity=[0.0, -9.81, 0.0])
     state = js.State(x=jnp.array([[0.0, 0, 0], [0, -1, 0]]), v=jnp.array([[0.0, 0, 0], [1.0, 0, 0]]))
     traj = js.rollout(model, params, state, steps=100_000, save_every=10)
-    e = np.asarray(js.energy(model, params, traj))
+    e = np.asarray(js.sim.energy(model, params, traj))
     # the potential's zero is arbitrary: measure relative to the peak kinetic energy
     scale = np.max(0.5 * np.sum(np.asarray(traj.v) ** 2, axis=(1, 2)))
     assert np.max(np.abs(e - e[0])) / scale < 1e-3

@@ -38,7 +38,7 @@ def _recordings(count, seed=0):
     out = []
     for _ in range(count):
         ends = rest + rng.uniform(0.02, 0.05, (2, 3)) * np.sin(2 * np.pi * t[:, None, None])
-        drive = js.Drive(particles=(0, N - 1), t=jnp.asarray(t), x=jnp.asarray(ends))
+        drive = js.sim.Drive(particles=(0, N - 1), t=jnp.asarray(t), x=jnp.asarray(ends))
         traj = js.rollout(scene.model, params, scene.state, steps=(FRAMES - 1) * 5, save_every=5, drive=drive)
         out.append(js.Recording(t=t, x=np.asarray(traj.x) + rng.normal(0.0, 5e-4, (FRAMES, N, 3))))
     return out

@@ -41,7 +41,7 @@ def make_recordings(scene, count, frames, noise, seed=0):
         t = np.arange(frames) * 0.01
         freq, amp = rng.uniform(0.8, 1.6, (2, 3)), rng.uniform(0.03, 0.08, (2, 3))
         ends = rest + amp * np.sin(2 * np.pi * freq * t[:, None, None]) * (1 - np.exp(-((t / 0.2) ** 2)))[:, None, None]
-        drive = js.Drive(particles=(0, N - 1), t=jnp.asarray(t), x=jnp.asarray(ends))
+        drive = js.sim.Drive(particles=(0, N - 1), t=jnp.asarray(t), x=jnp.asarray(ends))
         traj = js.rollout(scene.model, params, scene.state, steps=(frames - 1) * 5, save_every=5, drive=drive)
         x = np.asarray(traj.x) + rng.normal(0.0, noise, (frames, N, 3))
         x[40:44, 2] = np.nan  # a marker lost for 4 frames
@@ -125,7 +125,7 @@ def test_prediction_errors_per_coordinate_marker_and_pooled_match_a_loop(rope):
         np.testing.assert_allclose(p.rms_error, np.sqrt(np.mean(np.square(dists))), rtol=1e-12)
         pooled_abs += abs_errors
         pooled_dist += dists
-    summary = js.summarise(out)
+    summary = js.fitting.summarise(out)
     np.testing.assert_allclose(summary.mean_coordinate_error, np.mean(pooled_abs), rtol=1e-12)
     np.testing.assert_allclose(summary.mean_distance, np.mean(pooled_dist), rtol=1e-12)
     np.testing.assert_allclose(summary.frozen_coordinate_error, np.mean(frozen_c), rtol=1e-12)

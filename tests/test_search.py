@@ -45,7 +45,7 @@ def recordings(rope):
             1,
             0.5,
         ]
-        drive = js.Drive(particles=(0,), t=jnp.asarray(t), x=jnp.asarray(end))
+        drive = js.sim.Drive(particles=(0,), t=jnp.asarray(t), x=jnp.asarray(end))
         traj = js.rollout(rope.model, params, rope.state, steps=79 * 5, save_every=5, drive=drive)
         out.append(js.Recording(t=t, x=np.asarray(traj.x) + rng.normal(0.0, 1e-3, (80, N, 3))))
     return out

@@ -17,7 +17,7 @@ SCRIPT = textwrap.dedent(
     ks = jnp.linspace(3000.0, 7000.0, 8)
     run = jax.jit(jax.vmap(lambda k: js.rollout(scene.model, scene.params.replace(ks=k), scene.state, 60, 20).x))
     plain = np.asarray(run(ks))
-    sharded_ks = js.shard_batch(ks)
+    sharded_ks = js.sim.shard_batch(ks)
     assert len(sharded_ks.sharding.device_set) == 4
     sharded = run(sharded_ks)
     assert len(sharded.sharding.device_set) == 4

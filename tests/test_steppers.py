@@ -48,14 +48,14 @@ class LinearDragWithoutGrid:
         return jnp.zeros((), x.dtype)
 
 
-js.register_term(LinearDrag(), parameters=("cd",))
-js.register_term(LinearDragWithoutGrid(), parameters=("cd",))
+js.sim.register_term(LinearDrag(), parameters=("cd",))
+js.sim.register_term(LinearDragWithoutGrid(), parameters=("cd",))
 
 
 def sheet(term="linear_drag", backend="auto"):
-    positions = js.lattice_positions(SHAPE, 0.5, (0.0, 0.0, 0.0), (0, 2))
-    springs = js.lattice_springs(SHAPE, ["structural", "shear"])
-    model = js.make_model(springs, 0.2, positions=positions, pinned=[0, 2], lattice_shape=SHAPE, backend=backend)
+    positions = js.sim.lattice_positions(SHAPE, 0.5, (0.0, 0.0, 0.0), (0, 2))
+    springs = js.sim.lattice_springs(SHAPE, ["structural", "shear"])
+    model = js.sim.make_model(springs, 0.2, positions=positions, pinned=[0, 2], lattice_shape=SHAPE, backend=backend)
     model = model.replace(terms=model.terms + (term,))
     params = js.Params(ks=80.0, kd=0.3, cd=0.7, gravity=[0.0, -9.81, 0.0])
     state = js.State(x=jnp.asarray(positions), v=jnp.zeros_like(jnp.asarray(positions)))
@@ -136,8 +136,8 @@ def test_selection_by_backend_and_integrator(scenes):
     if native.available():
         assert cloth.with_backend("native").model.stepper.name == "native_lattice"
         # the lattice kernel steps semi-implicit Euler only: other integrators take the springs kernel
-        assert cloth.with_backend("native").with_integrator(js.RK4()).model.stepper.name == "native_springs"
-        assert cloth.with_integrator(js.Verlet()).model.stepper.name == "grid"  # auto: pure JAX
+        assert cloth.with_backend("native").with_integrator(js.sim.RK4()).model.stepper.name == "native_springs"
+        assert cloth.with_integrator(js.sim.Verlet()).model.stepper.name == "grid"  # auto: pure JAX
     # forward mode: every model has a pure-JAX twin with the same layout
     twin = cloth.model.forward_mode()
     assert twin.stepper.forward_mode and twin.stepper.array_to_internal(twin, cloth.state.x).shape == (3, 31, 41)
@@ -149,10 +149,10 @@ def test_selection_by_backend_and_integrator(scenes):
 @pytest.mark.slow
 def test_integrators_are_configured_objects(scenes):
     chain = scenes["chain"]
-    guess_only = js.BackwardEuler(newton=js.NewtonSettings(max_newton=0))
+    guess_only = js.sim.BackwardEuler(newton=js.sim.NewtonSettings(max_newton=0))
     configured = chain.with_integrator(guess_only)
     assert configured.model.integrator == guess_only and configured.model.integrator.name == "backward_euler"
-    assert chain.with_integrator("backward_euler").model.integrator == js.INTEGRATORS["backward_euler"]
+    assert chain.with_integrator("backward_euler").model.integrator == js.sim.INTEGRATORS["backward_euler"]
     assert chain.with_integrator("backward_euler").model.integrator != guess_only
     start = chain.state.replace(v=chain.state.v.at[5].set(jnp.array([0.0, 3.0, 0.0])))
 

@@ -120,7 +120,19 @@ def start_polish(scene, target, names, values, nuisance, settings):
     return steps
 
 
-def identifiability(
+def identifiability(scene: Scene, observations: Observations, names, values: dict, *, max_parameters: int = 64):
+    """Gauss-Newton standard errors and correlations of `values` (parameter name -> value)
+    for the whole-horizon fit of `observations`, with warnings where the data do not
+    determine a parameter; None when there are more than `max_parameters` values.
+
+    Example:
+        >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
+        >>> report.standard_error["ks"], report.warnings
+    """
+    return identifiability_report(scene, observations, names, values, max_parameters)
+
+
+def identifiability_report(
     scene: Scene,
     observations: Observations,
     names,
@@ -150,9 +162,8 @@ def identifiability(
     residuals are those segments', and the noise of the recorded start positions they begin
     from counts in the standard errors too (`_start_sensitivity`): a fit from noisy
     starts is biased as an errors-in-variables fit is, and says so by wider errors.
-
-    Example:
-        >>> report = js.identifiability(scene, obs, ["ks", "kd"], result.final)
+    `js.identifiability` is this report for the whole horizon, without the keywords a
+    fit's own stages pass.
     """
     names = tuple(names)
     flat, unravel, residuals = residual_function(scene, observations, names, values, segment)

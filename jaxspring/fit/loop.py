@@ -19,7 +19,7 @@ from .ensemble import ensemble_step_function
 from .gradient import RETREATS, best_of_stages, keep_best_of_stage, retreat, step_function
 from .gradient import converged as _converged
 from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
-from .identifiability import gauss_newton_polish, identifiability, start_polish
+from .identifiability import gauss_newton_polish, identifiability_report, start_polish
 from .least_squares import finish_shooting_stage
 from .noisy_states import refit_from, refit_stages, why_refit
 from .objective import check_names, loss_function, target_data
@@ -372,7 +372,7 @@ def _results(scene, observations, names, start_values, settings, stages, progres
                 "segment_v": np.asarray(fit.starts.v),
                 "segment_frame": np.asarray(fit.first_frames),
             }
-        ident = identifiability(scene, obs, names, final, **shooting) if identify else None
+        ident = identifiability_report(scene, obs, names, final, **shooting) if identify else None
         if ident and isinstance(obs, RecordingTarget) and not (estimated and "driven" in estimated):
             ident = warn_of_noisy_driven_paths(obs, ident)
         results.append(

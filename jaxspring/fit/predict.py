@@ -103,7 +103,7 @@ def summarise(predictions) -> ErrorSummary:
     """Pool the errors of `predictions` (of one marker set): see `ErrorSummary`.
 
     Example:
-        >>> summary = js.summarise(js.predict(scene, values, recordings, driven=[0, 1, 10, 11]))
+        >>> summary = js.fitting.summarise(js.predict(scene, values, recordings, driven=[0, 1, 10, 11]))
         >>> summary.mean_coordinate_error  # [m]
     """
     predictions = list(predictions)

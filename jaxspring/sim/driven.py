@@ -50,7 +50,7 @@ class Drive:
             Hermite curve through positions and velocities (smooth, no kink at the knots).
 
     Example:
-        >>> drive = js.Drive(particles=(0,), t=[0.0, 1.0], x=[[[0.0, 0.0, 0.0]], [[0.1, 0.0, 0.0]]])
+        >>> drive = js.sim.Drive(particles=(0,), t=[0.0, 1.0], x=[[[0.0, 0.0, 0.0]], [[0.1, 0.0, 0.0]]])
         >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=1000, drive=drive)
     """
 

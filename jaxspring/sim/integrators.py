@@ -179,7 +179,7 @@ class SemiImplicitEuler(Integrator):
     """The seed's integrator: v' = v + dt F(x, v) / m, then x' = x + dt v'.
 
     Example:
-        >>> scene = js.load_scene("chain").with_integrator(js.SemiImplicitEuler())
+        >>> scene = js.load_scene("chain").with_integrator(js.sim.SemiImplicitEuler())
     """
 
     name = "semi_implicit_euler"
@@ -193,7 +193,7 @@ class Verlet(Integrator):
     """Velocity Verlet, second order (see `verlet`).
 
     Example:
-        >>> scene = js.load_scene("chain").with_integrator(js.Verlet())
+        >>> scene = js.load_scene("chain").with_integrator(js.sim.Verlet())
     """
 
     name = "verlet"
@@ -207,7 +207,7 @@ class RK4(Integrator):
     """Classic fourth-order Runge-Kutta (see `rk4`).
 
     Example:
-        >>> scene = js.load_scene("chain").with_integrator(js.RK4())
+        >>> scene = js.load_scene("chain").with_integrator(js.sim.RK4())
     """
 
     name = "rk4"
@@ -224,7 +224,7 @@ class BackwardEuler(Integrator):
         newton: the solver's settings (`NewtonSettings`).
 
     Example:
-        >>> stiff = js.BackwardEuler(newton=js.NewtonSettings(tolerance=1e-10, max_newton=30))
+        >>> stiff = js.sim.BackwardEuler(newton=js.sim.NewtonSettings(tolerance=1e-10, max_newton=30))
         >>> scene = js.load_scene("hard/stiff_cloth").with_integrator(stiff)
     """
 

@@ -206,7 +206,7 @@ def make_model(
         pinned: bool (N,) mask or a list of particle indices; default none.
         drag: bool (N,) mask, True/False for all; default none. Any set flag adds the drag term.
         gravity, ground: whether the scene has these terms.
-        integrator: an `Integrator` (e.g. `js.BackwardEuler(newton=js.NewtonSettings(...))`)
+        integrator: an `Integrator` (e.g. `js.sim.BackwardEuler(newton=js.sim.NewtonSettings(...))`)
             or the name of one in `jaxspring.INTEGRATORS`.
         dt: time step [s].
         lattice_shape: the particles' lattice shape when they form one (C order); if

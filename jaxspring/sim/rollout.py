@@ -80,7 +80,7 @@ def final_state(model: Model, params: Params, state: State, steps: int) -> State
     """The state after `steps` time steps, without storing frames.
 
     Example:
-        >>> end = js.final_state(scene.model, scene.params, scene.state, steps=1000)
+        >>> end = js.sim.final_state(scene.model, scene.params, scene.state, steps=1000)
     """
     steps = step_count(steps, "steps", minimum=0)
     state = _in_model_precision(model, state)
@@ -249,7 +249,7 @@ def energy(model: Model, params: Params, state: State) -> jax.Array:
     """Total mechanical energy [J] of a state, or of every frame of a Trajectory.
 
     Example:
-        >>> e = js.energy(scene.model, scene.params, traj)   # shape (frames,)
+        >>> e = js.sim.energy(scene.model, scene.params, traj)   # shape (frames,)
     """
     if isinstance(state, Trajectory):
         return jax.vmap(lambda x, v: model.energy(params, State(x=x, v=v)))(state.x, state.v)

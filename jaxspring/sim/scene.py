@@ -72,7 +72,7 @@ class Scene:
         """A copy that steps with another integrator: an `Integrator` or a name in `INTEGRATORS`.
 
         Example:
-            >>> scene.with_integrator(js.BackwardEuler(newton=js.NewtonSettings(max_newton=40)))
+            >>> scene.with_integrator(js.sim.BackwardEuler(newton=js.sim.NewtonSettings(max_newton=40)))
         """
         return dataclasses.replace(self, model=self.model.replace(integrator=as_integrator(integrator)))
 

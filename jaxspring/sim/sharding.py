@@ -5,7 +5,7 @@ mesh lets `jax.jit` split the batch across devices (GSPMD), with no change to th
 simulation code, and the results are the same numbers as on one device.
 
 Example:
-    >>> ks = js.shard_batch(jnp.linspace(500.0, 1500.0, 64))
+    >>> ks = js.sim.shard_batch(jnp.linspace(500.0, 1500.0, 64))
     >>> run = jax.jit(jax.vmap(lambda k: js.rollout(model, params.replace(ks=k), state, 1000, 100).x))
     >>> x = run(ks)        # (64, 11, N, 3), computed on all devices
 

@@ -78,7 +78,7 @@ def estimate_stability(model: Model, params: Params, state: State, iterations: i
     (`stable_dt`).
 
     Example:
-        >>> js.estimate_stability(scene.model, scene.params, scene.state).dt_bound
+        >>> js.sim.estimate_stability(scene.model, scene.params, scene.state).dt_bound
     """
     # the force reads neither dt nor the integrator: one compiled iteration serves every choice
     linear = model.forward_mode().replace(backend="jax", dt=1.0, integrator="semi_implicit_euler")
@@ -115,7 +115,7 @@ def stable_dt(integrator, omega: float, damping: float = 0.0) -> float:
     1e6 / rate), as backward Euler is.
 
     Example:
-        >>> js.stable_dt("semi_implicit_euler", omega=100.0)   # 2 / 100
+        >>> js.sim.stable_dt("semi_implicit_euler", omega=100.0)   # 2 / 100
         0.02
     """
     rate = max(omega, damping)
@@ -266,7 +266,7 @@ def find_blowup(model: Model, params: Params, trajectory: Trajectory) -> BlowUp 
 
     Example:
         >>> traj = js.rollout(model, params, state, steps=5000, save_every=50)
-        >>> problem = js.find_blowup(model, params, traj)
+        >>> problem = js.sim.find_blowup(model, params, traj)
         >>> if problem: print(problem.describe())
     """
     first = trajectory.frame(0)
