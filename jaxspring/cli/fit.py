@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..fit.settings import OPTIMIZERS
 from ..steppers import BACKENDS
 from .common import BACKEND_HELP, check_output, parse_sets
 
@@ -21,7 +22,9 @@ def add_parser(sub):
     parser.add_argument("--out", help="fit file (default: NAME.fit.h5); a loss/parameter plot goes beside it (.png)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted fit from --out")
     parser.add_argument(
-        "--optimizer", choices=["lbfgs", "adam"], help="optimizer (default: the experiment's, else lbfgs)"
+        "--optimizer",
+        choices=list(OPTIMIZERS),
+        help="optimizer (default: the experiment's, else auto: Levenberg-Marquardt on recordings, L-BFGS otherwise)",
     )
     parser.add_argument(
         "--strategy",
@@ -224,11 +227,12 @@ def command(args):
                 on_iteration=on_iteration,
                 max_memory=limit,
             )[0]
-        if not all(np.all(np.isfinite(np.asarray(v))) for v in result.final.values()):
+        finite = all(np.all(np.isfinite(np.asarray(v))) for v in result.final.values())
+        if not finite or not np.all(np.isfinite(np.asarray(result.loss_history[-1:]))):
             if not existed:  # its checkpoints are of no use: nothing of this run is left
                 out.unlink(missing_ok=True)
             raise BlowUpError(
-                f"{experiment.name}: the fit blew up (its values are not finite: every rollout from the start "
+                f"{experiment.name}: the fit blew up (its values or its misfit are not finite: every rollout from the start "
                 "values went past the time step's stability limit); start from softer values (lower init), or "
                 "give the scene a smaller dt"
             )

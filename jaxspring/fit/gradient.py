@@ -41,12 +41,13 @@ import numpy as np
 import optax
 
 from ..sim.params import NON_NEGATIVE, split_name
+from .least_squares import LM_REMAINING, LM_WINDOW
 from .progress import FitProgress
 from .settings import FitSettings
 
 
 def _optimizer(settings: FitSettings):
-    if settings.optimizer == "lbfgs":
+    if settings.optimizer != "adam":  # "auto" and "lm" stages without a least-squares loss: L-BFGS
         return optax.lbfgs()
     return optax.chain(optax.clip_by_global_norm(settings.clip), optax.adam(settings.learning_rate))
 
@@ -64,7 +65,7 @@ def step_function(loss, settings: FitSettings, data_batched: bool):
 
     def single(theta, opt_state, data):
         value_fn = lambda th: loss(th, data)  # noqa: E731
-        if settings.optimizer == "lbfgs":
+        if settings.optimizer != "adam":
             value, grad = optax.value_and_grad_from_state(value_fn)(theta, state=opt_state)
             updates, opt_state = optimizer.update(grad, opt_state, theta, value=value, grad=grad, value_fn=value_fn)
         else:
@@ -149,6 +150,15 @@ def converged(progress: FitProgress, settings: FitSettings, final_stage: bool, o
     if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage
         current = progress.loss and progress.stage_of_iteration[-1] == progress.stage
         return bool(np.all(np.asarray(opt_state["done"]) > 0) or (current and np.all(progress.loss[-1] <= floor)))
+    if isinstance(opt_state, dict) and "remaining" in opt_state:  # Levenberg-Marquardt (least_squares)
+        if np.all(np.asarray(opt_state["remaining"]) < LM_REMAINING):
+            return True
+        in_stage = [loss for loss, s in zip(progress.loss, progress.stage_of_iteration) if s == progress.stage]
+        if len(in_stage) > LM_WINDOW:  # less than one unit of the residuals' variance in LM_WINDOW iterations
+            before, now = np.asarray(in_stage[-1 - LM_WINDOW]), np.asarray(in_stage[-1])
+            units = (before - now) * np.asarray(opt_state["dof"]) / np.maximum(now, 1e-300)
+            if np.all(units < 1.0):
+                return True
     if progress.last_step is not None:
         limit = settings.step_tolerance if final_stage else settings.warmup_step_tolerance
         if np.all(progress.last_step <= limit):
@@ -159,7 +169,7 @@ def converged(progress: FitProgress, settings: FitSettings, final_stage: bool, o
     first, now = np.asarray(in_stage[0]), np.asarray(in_stage[-1])
     if np.all(now <= settings.tolerance**2 * first):
         return True
-    if len(in_stage) < 6 or settings.optimizer != "lbfgs":  # Adam's loss is not monotone
+    if len(in_stage) < 6 or settings.optimizer == "adam":  # Adam's loss is not monotone
         return False
     before = np.asarray(in_stage[-6])
     return bool(np.all((before - now) <= settings.tolerance * np.abs(before)))

@@ -20,7 +20,7 @@ from .gradient import RETREATS, best_of_stages, keep_best_of_stage, retreat, ste
 from .gradient import converged as _converged
 from .horizon import describe_segments, describe_smoothness, horizon_stage, measure_horizon, round_off_loss
 from .identifiability import gauss_newton_polish, identifiability_report, start_polish
-from .least_squares import finish_shooting_stage
+from .least_squares import finish_shooting_stage, least_squares_residual, lm_step_function, stage_optimizer
 from .noisy_states import refit_from, refit_stages, why_refit
 from .objective import check_names, loss_function, target_data
 from .observations import Observations
@@ -237,6 +237,10 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
         loss_of = None
     else:
         step, init_opt, loss_of = step_function(loss_function(scene, reference, names, stage), settings, batched_data)
+        residual = least_squares_residual(scene, reference, names, stage, settings, progress.theta)
+        if residual is not None:  # Levenberg-Marquardt on the stage's residuals
+            step, init_opt = lm_step_function(residual, batched_data)
+        settings = dataclasses.replace(settings, optimizer=stage_optimizer(settings, residual))
     opt_state = init_opt(progress.theta)
     if progress.optimizer_leaves is not None:
         structure = jax.tree_util.tree_structure(opt_state)
@@ -255,7 +259,7 @@ def _optimiser_stage(run: _Run, stage: Stage, progress: FitProgress):
     # the stage's retreats so far count (a resumed stage goes on as an uninterrupted one)
     stage_began = len(progress.loss) - progress.iteration
     used = sum(1 for i, _ in progress.retreats if i >= stage_began)
-    retreats = RETREATS - used if loss_of is not None and settings.optimizer == "lbfgs" else 0
+    retreats = RETREATS - used if loss_of is not None and settings.optimizer in ("lbfgs", "lm") else 0
     while progress.iteration < settings.iterations:
         if _converged(progress, settings, final_stage, opt_state, floor):
             # stopped early: on the stability wall, a softer point is lower (fit.gradient.retreat)

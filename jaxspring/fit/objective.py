@@ -109,6 +109,34 @@ def loss_function(scene: Scene, observations: Observations, names, stage: Stage)
     return lambda theta, data: jnp.mean(misfit(theta, data) ** 2)
 
 
+def stage_residual_function(scene: Scene, observations: Observations, names, stage: Stage):
+    """residual(theta, data) -> (n,) of a "direct" stage, scaled so that its sum of squares is
+    the stage's loss (`loss_function`), on the pure-JAX twin of the model (Levenberg-Marquardt
+    takes its Jacobian with jacfwd); None where the loss is not such a sum (another stage kind,
+    a robust loss, fitted start states)."""
+    if stage.kind != "direct":
+        return None
+    forward = dataclasses.replace(scene, model=scene.model.forward_mode())
+    if isinstance(observations, RecordingTarget):
+        if observations.loss != "mse" or observations.fit_start or observations.fit_driven:
+            return None
+        misfit = recording_loss.misfit_function(forward, observations, names, stage.frames)
+        first = recording_loss.first_frame(observations)
+
+        def residual(theta, data):  # mse over seen coordinates: zero where unseen
+            count = jnp.maximum(3.0 * jnp.sum(data["seen"][:, first : stage.frames + 1]), 1.0)
+            return misfit(theta, data).reshape(-1) / jnp.sqrt(count)
+
+        return residual
+    misfit = misfit_function(forward, observations, names, stage.frames)
+
+    def residual(theta, data):  # mse over every coordinate
+        r = misfit(theta, data).reshape(-1)
+        return r / jnp.sqrt(r.size)
+
+    return residual
+
+
 def target_data(observations: Observations) -> dict:
     if isinstance(observations, RecordingTarget):
         return recording_loss.target_data(observations)

@@ -13,7 +13,7 @@ from ..sim.scene import Scene
 from .observations import Observations
 
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
-OPTIMIZERS = ("lbfgs", "adam")
+OPTIMIZERS = ("auto", "lbfgs", "lm", "adam")
 STRATEGIES = ("auto", "direct", "curriculum", "shooting", "position_shooting", "free_shooting")
 ENSEMBLE_CHOICES = ("auto", "gradient", "ensemble")
 SEGMENT_STATES = ("free_shooting", "position_shooting")  # stages fitting the segments' start states too
@@ -25,7 +25,10 @@ class FitSettings:
     """How to fit.
 
     Attributes:
-        optimizer: "lbfgs" (default: fewest iterations on the seed scenes) or "adam".
+        optimizer: "auto" (default): Levenberg-Marquardt ("lm") for the whole-take stages of
+            recordings (a least-squares misfit of a few values: far fewer rollouts than
+            L-BFGS, docs/performance.md), L-BFGS ("lbfgs", fewest iterations on the seed
+            scenes) for the rest; "lm" for every stage with a least-squares loss; or "adam".
         iterations: most iterations per stage.
         learning_rate: Adam's step in log-parameter space.
         clip: Adam's gradient clipping (global norm).
@@ -86,7 +89,7 @@ class FitSettings:
             `starts` = 1 skips the search.
     """
 
-    optimizer: str = "lbfgs"
+    optimizer: str = "auto"
     iterations: int = 100
     learning_rate: float = 0.05
     clip: float = 1.0
@@ -158,13 +161,14 @@ class Stage:
     spread: float | None = None
 
 
-PLAN_VERSION = 3
+PLAN_VERSION = 4
 """The rules by which a fit's stages are planned, added and ended (`plan_stages`,
 `horizon_stage`, `noisy_states.refit_stages`), numbered: a fit file keeps stage indices, so
 `--resume` refuses a file written under other rules. 2: "position_shooting" replaces a final
 stage of longer segments from noisy recorded states instead of following it. 3: a
 "shooting" stage on exact data ends with Levenberg-Marquardt steps
-(`least_squares.finish_segments`)."""
+(`least_squares.finish_segments`). 4: optimizer "auto" runs the whole-take stages of
+recordings with Levenberg-Marquardt (`least_squares.lm_step_function`)."""
 
 
 def plan_stages(
