@@ -15,6 +15,7 @@ import pytest
 
 import jaxspring as js
 from jaxspring.cli import main
+from jaxspring.fit.identifiability import identifiability_report
 from jaxspring.fit.objective import misfit_function, target_data
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -210,7 +211,7 @@ def test_standard_error_counts_the_noise_of_recorded_segment_starts():
         }
     )
     obs = js.synthetic_observations(scene, {"ks": 20.0}, steps=400, save_every=20, noise_relative=0.02, seed=3)
-    report = js.identifiability(scene, obs, ["ks"], {"ks": 20.0}, segment=5)  # 4 segments of 5 frames
+    report = identifiability_report(scene, obs, ["ks"], {"ks": 20.0}, segment=5)  # 4 segments of 5 frames
     states = np.asarray(obs.states.x)
 
     def residuals(ks, starts):
