@@ -181,3 +181,67 @@ def test_the_cable_benchmark_runs_at_a_small_size(tmp_path, monkeypatch):
     errors = {r[1].strip(): float(r[7]) for r in rows}  # held-out mean abs. error per coordinate [mm]
     floor = errors.pop("floor: free markers frozen at the start frame")
     assert len(errors) == 2 and all(0 < e < 0.5 * floor for e in errors.values()), errors
+
+
+def hanging_recordings(up: int, takes=2, frames=60, seed=0):
+    """A 5-marker rope (jaxspring's own, y up) hanging between two swaying grippers 0.3 m apart, its axes
+    turned so that `up` (1: y, 2: z) is up; 1 mm noise."""
+    rope = {
+        "name": "rope",
+        "dt": 0.002,
+        "physics": {"ks": 300.0, "kd": 0.5, "cd": 0.02},
+        "particles": {"x": [[0.1 * i, 0.0, 0.0] for i in range(5)], "mass": 0.03, "drag": True},
+        "springs": {"pairs": [[i, i + 1] for i in range(4)]},
+    }
+    scene = js.scene_from_dict(rope)
+    rng = np.random.default_rng(seed)
+    turn = np.eye(3) if up == 1 else np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # y up -> z up
+    out = []
+    for _ in range(takes):
+        t = np.arange(frames) * 0.01
+        ends = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])[None] + 0.03 * np.sin(
+            2 * np.pi * rng.uniform(0.5, 1.0, (1, 2, 3)) * t[:, None, None]
+        )
+        drive = js.sim.Drive(particles=(0, 4), t=jax.numpy.asarray(t), x=jax.numpy.asarray(ends))
+        # hung first: 0.5 s at rest between the grippers, then the recorded motion
+        still = js.sim.Drive(particles=(0, 4), t=jax.numpy.asarray([0.0, 1.0]), x=jax.numpy.asarray(ends[[0, 0]]))
+        hung = js.rollout(scene.model, scene.params, scene.state, steps=250, save_every=250, drive=still)
+        start = js.State(x=hung.x[-1], v=hung.v[-1])
+        traj = js.rollout(scene.model, scene.params, start, steps=(frames - 1) * 5, save_every=5, drive=drive)
+        x = np.asarray(traj.x) + rng.normal(0.0, 1e-3, (frames, 5, 3))
+        out.append(js.Recording(t=t + 1.0, x=x @ turn.T))
+    return out
+
+
+def test_gravity_is_read_from_the_sag_and_a_wrong_up_axis_is_refused(capsys):
+    for up, down in ((1, [0.0, -9.81, 0.0]), (2, [0.0, 0.0, -9.81])):
+        cable = js.cable_scene(hanging_recordings(up), driven=(0, -1))
+        assert cable.scene["physics"]["gravity"] == down
+        assert "inferred from how the markers sag" in capsys.readouterr().out
+        scene = js.scene_from_dict(tomllib.loads(cable.toml()))
+        np.testing.assert_allclose(np.asarray(scene.params.gravity), down)
+    z_up = hanging_recordings(2)
+    given = js.cable_scene(z_up, driven=(0, -1), gravity=(0, 0, -9.8))
+    assert given.scene["physics"]["gravity"] == [0.0, 0.0, -9.8]
+    with pytest.raises(js.InputError, match=r"is \d+ degrees from the direction the markers sag"):
+        js.cable_scene(z_up, driven=(0, -1), gravity=(0, -9.81, 0))  # the project's y up, on z-up data
+    line = np.linspace(0, 1, 5)[:, None] * np.array([1.0, 0, 0])  # five markers on a straight line
+    taut = [js.Recording(t=r.t, x=np.broadcast_to(line, r.x.shape).copy()) for r in z_up]
+    with pytest.raises(js.InputError, match="cannot be inferred"):
+        js.cable_scene(taut, driven=(0, -1))
+    with pytest.raises(js.InputError, match="three numbers"):
+        js.cable_scene(z_up, driven=(0, -1), gravity=(0, -9.81))
+
+
+@pytest.mark.slow
+def test_the_same_motion_recorded_y_up_and_z_up_fits_the_same_values():
+    fits = []
+    for up in (1, 2):
+        recs = hanging_recordings(up)
+        cable = js.cable_scene(recs, driven=(0, -1), rest="straight")
+        scene = js.scene_from_dict(cable.scene)
+        target = js.recording_target(scene, recs, markers=cable.markers, driven=cable.driven, start=1)
+        fits.append(js.fit(scene, target, ["ks.stretch", "kd.stretch", "cd"], strategy="direct", identify=False))
+    for n in ("ks.stretch", "kd.stretch", "cd"):
+        assert float(fits[0].final[n]) == pytest.approx(float(fits[1].final[n]), rel=1e-6), n
+    assert fits[0].loss_history[-1] == pytest.approx(fits[1].loss_history[-1], rel=1e-9)

@@ -337,7 +337,9 @@ def test_a_cable_through_markers_in_a_line_spaced_one_to_two_is_finite():
     t = np.arange(5) * 0.01
     for x in ([[0, 0, 0], [1, 0, 0], [3, 0, 0]], [[0, 0, 0], [1, 0, 0], [3, 0, 0], [4, 0, 0]]):
         marks = np.array(x, float)
-        cable = js.cable_scene([js.Recording(t=t, x=np.repeat(marks[None], 5, 0))], driven=(0, -1), subdivide=3)
+        cable = js.cable_scene(
+            [js.Recording(t=t, x=np.repeat(marks[None], 5, 0))], driven=(0, -1), subdivide=3, gravity=(0, -9.81, 0)
+        )
         positions = np.array(cable.scene["particles"]["x"])
         assert np.isfinite(positions).all()
         np.testing.assert_allclose(positions[cable.markers], marks, atol=1e-12)  # through every marker

@@ -29,6 +29,77 @@ from ..sim.checks import whole_number
 
 MAX_PARTICLES = 100_000
 """Most particles a cable scene is built with (`subdivide` beyond that is refused, not built)."""
+STANDARD_GRAVITY = 9.81
+"""m/s^2: the size of an inferred gravity vector."""
+AXIS_DEGREES = 10.0
+"""An inferred down direction this close to a coordinate axis is taken as that axis."""
+DISAGREE_DEGREES = 45.0
+"""A given gravity this far from the direction the markers sag is refused (a wrong up axis)."""
+LEAST_SAG = 1e-3
+"""Mean sag, as a fraction of the cable's marker-to-marker length, below which no down is read."""
+
+
+def sag_direction(recordings, length: float):
+    """The unit direction the cable's inner markers hang from the line between its end markers,
+    averaged over every frame of `recordings` (a hanging cable sags along gravity), or None when
+    the mean sag is below `LEAST_SAG` of `length` (a taut or a floating cable shows no down)."""
+    total, seen = np.zeros(3), 0
+    for r in recordings:
+        x = np.asarray(r.x, dtype=float)
+        chord = x[:, -1] - x[:, 0]
+        size = np.linalg.norm(chord, axis=-1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = chord / size
+        rel = x[:, 1:-1] - x[:, :1]
+        across = rel - np.sum(rel * u[:, None], axis=-1, keepdims=True) * u[:, None]
+        ok = np.isfinite(across).all(axis=-1) & (size > 0)
+        total += np.where(ok[..., None], across, 0.0).sum(axis=(0, 1))
+        seen += int(ok.sum())
+    if not seen or not np.linalg.norm(total) / seen >= LEAST_SAG * length:
+        return None
+    return total / np.linalg.norm(total)
+
+
+def cable_gravity(recordings, gravity, length: float) -> tuple[list, str]:
+    """(gravity [m/s^2], a sentence on where it came from): `gravity` as given, checked against
+    the markers' sag, or with None inferred from it (`sag_direction`), snapped to a coordinate
+    axis within `AXIS_DEGREES`."""
+    down = sag_direction(recordings, length)
+    if gravity is not None:
+        try:
+            vector = np.asarray(gravity, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise InputError("gravity", f"is {gravity!r}", "give three numbers in m/s^2, e.g. (0, -9.81, 0)") from None
+        if not np.isfinite(vector).all():
+            raise InputError("gravity", f"is {vector.tolist()}", "give three finite numbers in m/s^2")
+        size = np.linalg.norm(vector)
+        if down is not None and size > 0:
+            angle = float(np.degrees(np.arccos(np.clip(vector @ down / size, -1.0, 1.0))))
+            if angle > DISAGREE_DEGREES:
+                raise InputError(
+                    "gravity",
+                    f"{vector.tolist()} is {angle:.0f} degrees from the direction the markers sag "
+                    f"({np.round(down, 2).tolist()})",
+                    "check the recordings' up axis, or leave gravity out to infer it",
+                )
+        return vector.tolist(), f"gravity {vector.tolist()} m/s^2, as given"
+    if down is None:
+        raise InputError(
+            "gravity",
+            "cannot be inferred: the inner markers do not sag away from the line between the end markers",
+            "give gravity in the recordings' axes, e.g. gravity=(0, -9.81, 0) for y up, (0, 0, -9.81) for z up",
+        )
+    axis = int(np.argmax(np.abs(down)))
+    off = float(np.degrees(np.arccos(min(abs(float(down[axis])), 1.0))))
+    if off <= AXIS_DEGREES:
+        down = np.where(np.arange(3) == axis, np.sign(down[axis]), 0.0)
+    vector = [float(f"{STANDARD_GRAVITY * d:.6g}") + 0.0 for d in down]
+    sign = "-" if down[axis] < 0 else "+"
+    words = (
+        f"gravity {vector} m/s^2, inferred from how the markers sag ({off:.0f} degrees from {sign}{'xyz'[axis]}); "
+        "give gravity if that is not down"
+    )
+    return vector, words
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +115,7 @@ class CableModel:
     scene: dict
     markers: list
     driven: list
+    gravity_note: str = ""
 
     def toml(self) -> str:
         """The scene as the text of a scene file."""
@@ -79,6 +151,7 @@ def cable_scene(
     values=None,
     dt: float = 1e-3,
     name: str = "cable",
+    gravity=None,
 ) -> CableModel:
     """A cable through the markers of `recordings` (marker k next to marker k + 1 along it).
 
@@ -98,6 +171,11 @@ def cable_scene(
             length: ks and kd are given for a 1 m spring and scaled by 1 / rest length; kb [N m^2]
             and kbd [N m^2 s] are a rod's, independent of the particles); defaults suit a 1 m cable.
         dt: the scene's time step [s].
+        gravity: [m/s^2] in the recordings' axes. None (default): inferred from the direction the
+            cable's inner markers sag from the line between its ends, snapped to a coordinate axis
+            within 10 degrees, printed and written into the scene (`cable_gravity`). A given vector
+            more than 45 degrees from that direction is refused: a wrong up axis would fit the
+            wrong physics without a word.
 
     Example:
         >>> cable = js.cable_scene(recordings, subdivide=2, mass=0.2)
@@ -192,7 +270,10 @@ def cable_scene(
             ks[label] = float(f"{scale * values['ks'] / rest_length.mean():.6g}")
             kd[label] = float(f"{scale * values['kd'] / rest_length.mean():.6g}")
             springs.append({"name": label, "pairs": chosen.tolist(), "rest_length": rest_length.tolist()})
-    physics = {"ks": ks, "kd": kd, "cd": float(values["cd"]), "gravity": [0.0, 0.0, -9.81]}
+    vector, note = cable_gravity(recordings, gravity, float(median.sum()))
+    if gravity is None:
+        print(note)
+    physics = {"ks": ks, "kd": kd, "cd": float(values["cd"]), "gravity": vector}
     if bending:
         physics.update(kb=float(values["kb"]), kbd=float(values["kbd"]))
     scene = {
@@ -200,7 +281,7 @@ def cable_scene(
         "description": (
             f"A cable of {n} particles through {count} markers ({subdivide} per marker interval), "
             f"{'rest shape from the recordings' if rest == 'data' else 'straight at rest'}, {groups} segment group(s), "
-            f"{'the bending term' if bending else 'bend springs'}."
+            f"{'the bending term' if bending else 'bend springs'}; {note}."
         ),
         "dt": float(dt),
         "integrator": "semi_implicit_euler",
@@ -210,7 +291,8 @@ def cable_scene(
     }
     if bending:  # rest curvature: the scene's default, that of its rest shape x
         scene["bending"] = {"triples": [[i - 1, i, i + 1] for i in range(1, n - 1)]}
-    return CableModel(scene=scene, markers=markers.tolist(), driven=[int(markers[k]) for k in driven_markers])
+    driven_particles = [int(markers[k]) for k in driven_markers]
+    return CableModel(scene=scene, markers=markers.tolist(), driven=driven_particles, gravity_note=note)
 
 
 def _driven_markers(driven, count: int) -> list[int]:
