@@ -142,9 +142,9 @@ def lm_step_function(residual, data_batched: bool):
     rough at scales the data do not decide. The state is saved with a checkpoint, so a resumed
     stage goes on as an uninterrupted one.
 
-    For a few values and many residuals (recordings) an iteration costs about a gradient's
-    worth of rollouts per value, and far fewer iterations are needed than with L-BFGS's line
-    searches (docs/performance.md, fit speed).
+    For a few values and many residuals (recordings) an iteration costs about a rollout per
+    value (forward mode) and a trial or two, and far fewer rollouts are needed than with
+    L-BFGS's line searches (docs/performance.md, fit speed).
     """
 
     def single(theta, state, data):
