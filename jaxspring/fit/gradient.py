@@ -150,20 +150,18 @@ def converged(progress: FitProgress, settings: FitSettings, final_stage: bool, o
     if isinstance(opt_state, dict) and "done" in opt_state:  # an ensemble stage
         current = progress.loss and progress.stage_of_iteration[-1] == progress.stage
         return bool(np.all(np.asarray(opt_state["done"]) > 0) or (current and np.all(progress.loss[-1] <= floor)))
+    in_stage = [loss for loss, s in zip(progress.loss, progress.stage_of_iteration) if s == progress.stage]
     if isinstance(opt_state, dict) and "remaining" in opt_state:  # Levenberg-Marquardt (least_squares)
         if np.all(np.asarray(opt_state["remaining"]) < LM_REMAINING):
             return True
-        in_stage = [loss for loss, s in zip(progress.loss, progress.stage_of_iteration) if s == progress.stage]
         if len(in_stage) > LM_WINDOW:  # less than one unit of the residuals' variance in LM_WINDOW iterations
             before, now = np.asarray(in_stage[-1 - LM_WINDOW]), np.asarray(in_stage[-1])
-            units = (before - now) * np.asarray(opt_state["dof"]) / np.maximum(now, 1e-300)
-            if np.all(units < 1.0):
+            if np.all((before - now) * np.asarray(opt_state["dof"]) / np.maximum(now, 1e-300) < 1.0):
                 return True
     if progress.last_step is not None:
         limit = settings.step_tolerance if final_stage else settings.warmup_step_tolerance
         if np.all(progress.last_step <= limit):
             return True
-    in_stage = [loss for loss, s in zip(progress.loss, progress.stage_of_iteration) if s == progress.stage]
     if len(in_stage) < 2:
         return False
     first, now = np.asarray(in_stage[0]), np.asarray(in_stage[-1])
