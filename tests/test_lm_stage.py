@@ -85,3 +85,21 @@ def test_a_fit_interrupted_inside_the_lm_stage_resumes_to_the_same_bits(problem)
     for n in NAMES:
         assert np.array_equal(np.asarray(resumed.final[n]), np.asarray(whole.final[n])), n
     assert np.array_equal(resumed.loss_history, whole.loss_history)
+
+
+def test_an_lm_step_moves_a_value_the_residuals_hardly_see_a_bounded_way():
+    """A near-zero Jacobian column, damped in its own tiny scale, threw its log value to 5e9 (a
+    value of exactly 0, refused as a start value thereafter) and the other value past its answer."""
+    from jaxspring.fit.least_squares import LM_LARGEST_STEP, lm_step_function
+
+    def residual(theta, data):  # a is fitted by the data; b barely matters and is coupled to a
+        a, b = theta["a"], theta["b"]
+        return jnp.stack([a - 1.0 + 1e-9 * b, 1e-9 * (a + b) - data])
+
+    step, init = lm_step_function(residual, data_batched=False)
+    theta = {"a": jnp.array([3.0]), "b": jnp.array([0.0])}
+    new, _, cost = step(theta, init(theta), jnp.asarray(5.0))
+    assert float(cost[0]) == pytest.approx(4.0 + 25.0)  # the loss before the step
+    assert float(new["a"][0]) == pytest.approx(1.0, abs=1e-2)  # a Gauss-Newton step for a
+    assert abs(float(new["b"][0])) <= LM_LARGEST_STEP
+    assert float(jnp.sum(residual({n: v[0] for n, v in new.items()}, 5.0) ** 2)) == pytest.approx(25.0, rel=1e-6)

@@ -122,6 +122,14 @@ LM_WINDOW = 5
 """Iterations over which a Levenberg-Marquardt stage must lower the sum of squares by one unit
 of the residuals' variance to go on."""
 
+LM_LEAST_SCALE = 1e-6
+"""The least damping scale of a value, relative to the largest diagonal entry of J^T J."""
+
+LM_LARGEST_STEP = 6.907755278982137
+"""The most one Levenberg-Marquardt iteration moves a log value (ln 1000: a factor of 1000); a
+longer step is shortened as a whole: a value the residuals hardly see is never thrown to 0 or
+to infinity."""
+
 LM_TRIALS = 12
 """Dampings tried in one Levenberg-Marquardt iteration, each ten times the last, before the
 iteration gives up (the point stays; the stage's stop rules then end it)."""
@@ -154,7 +162,9 @@ def lm_step_function(residual, data_batched: bool):
         cost = jnp.sum(r**2)
         jac = jax.jacfwd(r_of)(flat)
         normal, slope = jac.T @ jac, jac.T @ r
-        scale = jnp.maximum(jnp.diag(normal), 1e-300)
+        # damping in each value's own scale, but not below LM_LEAST_SCALE of the largest: a value
+        # the residuals hardly see would take nearly undamped steps
+        scale = jnp.maximum(jnp.diag(normal), jnp.maximum(LM_LEAST_SCALE * jnp.max(jnp.diag(normal)), 1e-300))
         # the Gauss-Newton model's decrease to its minimum, g^T (J^T J)^-1 g, in units of the
         # residuals' variance (the unseen coordinates' residuals are exactly zero: not counted)
         unit = jnp.sqrt(scale)
@@ -166,6 +176,7 @@ def lm_step_function(residual, data_batched: bool):
         def trial(carry):
             damping, _, _, tries = carry
             step = -jnp.linalg.solve(normal + damping * jnp.diag(scale), slope)
+            step = step * jnp.minimum(1.0, LM_LARGEST_STEP / jnp.max(jnp.abs(step)))
             candidate = flat + step
             new = jnp.sum(r_of(candidate) ** 2)
             better = jnp.isfinite(new) & (new < cost) & jnp.all(jnp.isfinite(step))
