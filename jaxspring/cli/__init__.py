@@ -8,10 +8,19 @@ from __future__ import annotations
 
 import sys
 
-from . import bench, check, demo, fit, predict, render, run
+from . import bench, cable, check, demo, fit, predict, render, run
 from .common import EXIT_USER_ERROR, Parser
 
-COMMANDS = {"run": run, "check": check, "bench": bench, "render": render, "fit": fit, "predict": predict, "demo": demo}
+COMMANDS = {
+    "run": run,
+    "check": check,
+    "bench": bench,
+    "render": render,
+    "fit": fit,
+    "predict": predict,
+    "cable": cable,
+    "demo": demo,
+}
 
 
 def build_parser() -> Parser:

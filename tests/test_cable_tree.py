@@ -1,0 +1,224 @@
+"""Branched cables (wire harnesses) from recordings: the marker tree's checks, its particles and
+junction bending against hand-built expectations, gravity read for trees and grasps, and
+`jaxspring cable` -> `fit` -> `predict` end to end on a generated harness."""
+
+import contextlib
+import io
+import tomllib
+
+import jax
+import numpy as np
+import pytest
+
+import jaxspring as js
+from jaxspring.cli import main
+from jaxspring.errors import InputError
+from jaxspring.sim.forces import TERMS
+
+# a parent of 7 markers 0.1 m apart along x, a branch of 3 from parent marker 3 along +z (y up)
+PARENT = [[0.1 * i, 0.0, 0.0] for i in range(7)]
+BRANCH = [[0.3, 0.0, 0.1 * k] for k in range(1, 4)]
+EDGES = [(i, i + 1) for i in range(6)] + [(3, 7), (7, 8), (8, 9)]
+GRIPPERS = (0, 1, 5, 6)
+
+
+def still(shape, frames=2):
+    """A recording of `shape` standing still (M, 3)."""
+    return js.Recording(t=0.01 * np.arange(frames), x=np.repeat(np.asarray(shape, float)[None], frames, axis=0))
+
+
+def harness_recordings(up=1, takes=2, frames=50, seed=0, held=GRIPPERS):
+    """The harness above as a finer model (3 particles per marker interval, the bending term) hangs
+    between grippers at the `held` markers that then swing it; markers at 100 Hz with 1 mm noise.
+    `up` = 2 turns its axes so that z is up."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        fine = js.cable_scene(
+            [still(PARENT + BRANCH)],
+            edges=EDGES,
+            driven=held,
+            subdivide=3,
+            bending=True,
+            mass=0.1,
+            gravity=(0, -9.81, 0),
+            values={"ks": 300.0, "kd": 0.05, "kb": 0.004, "kbd": 2e-5, "cd": 0.01},
+            dt=2.5e-4,
+        )
+    scene = js.scene_from_dict(fine.scene)
+    rng = np.random.default_rng(seed)
+    turn = np.eye(3) if up == 1 else np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # y up -> z up
+    rest = np.asarray(scene.state.x)[fine.driven]
+    out = []
+    for _ in range(takes):
+        t = np.arange(frames) * 0.01
+        swing = 0.03 * np.sin(2 * np.pi * rng.uniform(0.8, 1.5, (1, 2, 3)) * t[:, None, None])
+        gripper = np.array([0 if k < len(held) / 2 else 1 for k in range(len(held))])
+        path = rest[None] + swing[:, gripper]
+        drive = js.sim.Drive(particles=fine.driven, t=jax.numpy.asarray(t), x=jax.numpy.asarray(path))
+        hold = js.sim.Drive(particles=fine.driven, t=jax.numpy.asarray([0.0, 1.0]), x=jax.numpy.asarray(path[[0, 0]]))
+        hung = js.rollout(scene.model, scene.params, scene.state, steps=4000, save_every=4000, drive=hold)
+        start = js.State(x=hung.x[-1], v=hung.v[-1])
+        traj = js.rollout(scene.model, scene.params, start, steps=(frames - 1) * 40, save_every=40, drive=drive)
+        x = np.asarray(traj.x)[:, fine.markers] + rng.normal(0.0, 1e-3, (frames, len(fine.markers), 3))
+        out.append(js.Recording(t=t, x=x @ turn.T))
+    return out
+
+
+def quiet_scene(recordings, **kwargs):
+    with contextlib.redirect_stdout(io.StringIO()) as printed:
+        cable = js.cable_scene(recordings, **kwargs)
+    return cable, printed.getvalue()
+
+
+def test_a_tree_is_laid_out_depth_first_with_junction_triples_between_every_two_neighbours():
+    cable, _ = quiet_scene(
+        [still(PARENT + BRANCH)], edges=EDGES, driven=GRIPPERS, subdivide=2, bending=True, gravity=(0, -9.81, 0)
+    )
+    # depth first from marker 0, lower neighbour first: the parent's markers, then the branch's;
+    # two intervals per marker interval except between the two markers of a gripper
+    assert cable.markers == [0, 1, 3, 5, 7, 9, 10, 12, 14, 16]
+    assert cable.driven == [0, 1, 9, 10]
+    x = np.array(cable.scene["particles"]["x"])
+    np.testing.assert_allclose(x[cable.markers], PARENT + BRANCH, atol=1e-12)
+    pairs = sorted(tuple(sorted(p)) for p in cable.scene["springs"][0]["pairs"])
+    assert len(pairs) == 16 and (5, 11) in pairs and (11, 12) in pairs  # the branch leaves from particle 5
+    triples = [tuple(t) for t in cable.scene["bending"]["triples"]]
+    # at the junction (particle 5): the parent's own triple and each parent side with the branch
+    assert sorted(t for t in triples if t[1] == 5) == [(4, 5, 6), (4, 5, 11), (6, 5, 11)]
+    # 13 particles with two neighbours give one triple each, the junction three
+    assert len(set(triples)) == len(triples) == 13 + 3
+    # the straight branch at a right angle: its spline stays on its line, and the rest turning
+    # angle across the junction is 90 degrees, a rest curvature of 2 tan(45 deg) = 2
+    np.testing.assert_allclose(x[11], [0.3, 0.0, 0.05], atol=1e-12)
+    scene = js.scene_from_dict(cable.scene)
+    rest = dict(zip(map(tuple, np.asarray(scene.model.bends).tolist()), np.asarray(scene.model.rest_curvature)))
+    assert rest[(4, 5, 11)] == pytest.approx(2.0, rel=1e-12) and rest[(6, 5, 11)] == pytest.approx(2.0, rel=1e-12)
+    assert rest[(4, 5, 6)] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_junction_bending_forces_match_a_float64_numpy_energy_gradient():
+    """The bending term on the junction triples: its force is minus the gradient of the energy
+    sum kb / (2 l) (|kappa| - kappa_0)^2, kappa = 2 e1 x e2 / (|e1||e2| + e1 . e2), by central differences."""
+    cable, _ = quiet_scene(
+        [still(PARENT + BRANCH)],
+        edges=EDGES,
+        driven=GRIPPERS,
+        bending=True,
+        gravity=(0, 0, 0),
+        values={"kb": 0.02, "kbd": 0.0},
+    )
+    scene = js.scene_from_dict(cable.scene)
+    model = scene.model
+    bends = np.asarray(model.bends)
+    length, kappa0 = np.asarray(model.bend_length), np.asarray(model.rest_curvature)
+
+    def energy(x):
+        total = 0.0
+        for (a, b, c), ell, k0 in zip(bends, length, kappa0, strict=True):
+            e1, e2 = x[b] - x[a], x[c] - x[b]
+            kappa = 2 * np.cross(e1, e2) / (np.linalg.norm(e1) * np.linalg.norm(e2) + e1 @ e2)
+            total += 0.02 / (2 * ell) * (np.linalg.norm(kappa) - k0) ** 2
+        return total
+
+    rng = np.random.default_rng(1)
+    x = np.asarray(scene.state.x) + rng.normal(0, 0.01, scene.state.x.shape)
+    h, numeric = 1e-6, np.zeros_like(x)
+    for i in range(x.shape[0]):
+        for d in range(3):
+            up, down = x.copy(), x.copy()
+            up[i, d] += h
+            down[i, d] -= h
+            numeric[i, d] = -(energy(up) - energy(down)) / (2 * h)
+    x_, v_ = jax.numpy.asarray(x), jax.numpy.zeros(x.shape)
+    force = np.asarray(TERMS["bending"].force(model, scene.params, x_, v_))
+    np.testing.assert_allclose(force, numeric, atol=1e-7 * np.abs(numeric).max())
+
+
+@pytest.mark.parametrize(
+    "edges, words",
+    [
+        (EDGES[:-1] + [(8, 2)], "edge (8, 2) closes a cycle"),
+        (EDGES[:-1], "marker 9 is in no edge"),
+        (EDGES[:-1] + [(9, 12)], "marker 12 is outside -10..9"),
+        (EDGES[:-1] + [(9, 9)], "joins marker 9 to itself"),
+        (EDGES + [(1, 0)], "edge (1, 0) is given twice"),
+        (EDGES[:-1] + [(9, 8, 7)], "is not a pair"),
+        ("0-1", "give marker index pairs"),
+    ],
+)
+def test_bad_graphs_are_refused_in_one_line_naming_the_edge(edges, words):
+    with pytest.raises(InputError, match=words.replace("(", r"\(").replace(")", r"\)")) as caught:
+        js.cable_scene([still(PARENT + BRANCH)], edges=edges, gravity=(0, -9.81, 0))
+    assert "\n" not in str(caught.value)
+
+
+def test_chain_only_options_and_branch_groups():
+    recs = [still(PARENT + BRANCH)]
+    with pytest.raises(InputError, match='give groups = "branch"'):
+        js.cable_scene(recs, edges=EDGES, groups=2, gravity=(0, -9.81, 0))
+    with pytest.raises(InputError, match='"straight" needs a chain'):
+        js.cable_scene(recs, edges=EDGES, rest="straight", gravity=(0, -9.81, 0))
+    cable, _ = quiet_scene(recs, edges=EDGES, driven=GRIPPERS, groups="branch", gravity=(0, -9.81, 0))
+    # the parent goes straight on through the junction: one branch; the side branch another
+    names = [g["name"] for g in cable.scene["springs"]]
+    assert names == ["stretch_1", "stretch_2", "bend_1", "bend_2"]
+    stretch = {g["name"]: sorted(map(tuple, g["pairs"])) for g in cable.scene["springs"]}
+    assert stretch["stretch_2"] == [(3, 7), (7, 8), (8, 9)]
+    assert cable.params == ["ks.stretch_1", "kd.stretch_1", "ks.stretch_2", "kd.stretch_2", "ks.bend_1"] + [
+        "kd.bend_1",
+        "ks.bend_2",
+        "kd.bend_2",
+        "cd",
+    ]
+
+
+def test_gravity_is_read_for_a_harness_between_grippers_and_below_one_grasp():
+    for up, axis in ((1, "y"), (2, "z")):
+        _, printed = quiet_scene(harness_recordings(up=up, takes=1, frames=20), edges=EDGES, driven=GRIPPERS)
+        assert f"from -{axis}" in printed, printed
+    # held at the parent's middle only (markers 2 and 3): a stiff harness stands out like a T there,
+    # its shape shows no down; inference is refused and a given vector is taken as given
+    middle = harness_recordings(takes=1, frames=20, held=(2, 3))
+    with pytest.raises(InputError, match="held at one place only"):
+        js.cable_scene(middle, edges=EDGES, driven=(2, 3))
+    cable, printed = quiet_scene(middle, edges=EDGES, driven=(2, 3), gravity=(0, -9.81, 0))
+    assert cable.scene["physics"]["gravity"] == [0.0, -9.81, 0.0] and "unchecked" in cable.gravity_note
+    # one gripper at an end and one in the middle: the arm beyond the middle levers the span
+    # between them up, so that span shows no reliable down either
+    with pytest.raises(InputError, match="held at one place only"):
+        js.cable_scene(harness_recordings(takes=1, frames=20, held=(0, 1, 3)), edges=EDGES, driven=(0, 1, 3))
+
+
+def test_cable_fit_predict_runs_end_to_end_on_a_generated_harness(tmp_path, capsys):
+    train, held_out = harness_recordings(takes=2, frames=40), harness_recordings(takes=1, frames=40, seed=7)
+    for folder, recs in (("train", train), ("held", held_out)):
+        (tmp_path / folder).mkdir()
+        for k, rec in enumerate(recs):
+            js.io.save_recording(tmp_path / folder / f"take{k}.h5", rec)
+    edges = ",".join(f"{i}-{j}" for i, j in EDGES)
+    out = tmp_path / "harness"
+    args = ["cable", *map(str, sorted((tmp_path / "train").glob("*.h5"))), "--edges", edges, "--driven", "0,1,5,6"]
+    args += ["--bending", "--mass", "0.1", "--start", "2", "--smooth", "2", "--out", str(out)]
+    args += ["--evaluate", str(tmp_path / "held" / "take0.h5")]
+    assert main(args) == 0
+    said = capsys.readouterr().out
+    assert "degrees from -y)" in said and "next: jaxspring fit" in said
+    experiment = tomllib.loads((out / "experiment.toml").read_text())
+    assert experiment["fit"]["params"] == ["ks.stretch", "kd.stretch", "cd", "kb", "kbd"]
+    assert experiment["target"]["driven"] == [0, 1, 5, 6]
+    assert (
+        js.load_scene(out / "cable.toml").model.bend_count == 6 + 3
+    )  # 6 inner markers of the branches, 3 at the junction
+    assert main(["cable", *args[1:]]) == 0  # its own files are replaced
+    (out / "mine.toml").write_text("x = 1\n")
+    assert main(["cable", *args[1:-6], "--out", str(out / "mine.toml")]) == 2  # a file, not a folder
+    text = (out / "experiment.toml").read_text()
+    (out / "experiment.toml").write_text(text.replace("[fit]\n", "[fit]\nstarts = 1\n"))  # no start search: CI time
+    fit_file = tmp_path / "harness.fit.h5"
+    assert main(["fit", str(out / "experiment.toml"), "--iterations", "4", "--quiet", "--out", str(fit_file)]) == 0
+    fitted = capsys.readouterr().out
+    assert "held-out" in fitted and "per marker" in fitted, fitted
+    assert main(["predict", str(fit_file), str(tmp_path / "held" / "take0.h5"), "--out-dir", str(tmp_path / "p")]) == 0
+    line = next(row for row in capsys.readouterr().out.splitlines() if row.startswith("take0"))
+    error, _, _, frozen, _ = (float(v.strip(",")) for v in line.split()[1:])
+    assert error < 0.4 * frozen, line  # the fitted harness predicts the held-out take, not the frozen start
+    assert (tmp_path / "p" / "take0.h5").exists()
