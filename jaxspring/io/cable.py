@@ -142,7 +142,7 @@ def cable_scene(
         dt: the scene's time step [s].
         gravity: [m/s^2] in the recordings' axes. None (default): inferred from the direction the
             markers sag from the line between the two held places farthest apart (or hang below
-            a single grasp), snapped to a coordinate axis within 10 degrees, printed and written
+            a single grasp), snapped to a coordinate axis within 15 degrees, printed and written
             into the scene (`cable_gravity`). A given vector more than 45 degrees from that
             direction is refused: a wrong up axis would fit the wrong physics without a word.
         edges: marker index pairs (i, j) that are neighbours along the object, forming a tree
@@ -154,7 +154,12 @@ def cable_scene(
         >>> scene = js.scene_from_dict(cable.scene)
         >>> target = js.recording_target(scene, recordings, markers=cable.markers, driven=cable.driven)
     """
-    recordings = list(recordings)
+    try:
+        recordings = list(recordings)
+    except TypeError:
+        raise InputError("recordings", f"is {recordings!r:.60}", "give a list of js.Recording") from None
+    if not all(hasattr(r, "x") and hasattr(r, "marker_count") for r in recordings):
+        raise InputError("recordings", "are not all js.Recording", "load them with js.load_recording")
     if not recordings:
         raise InputError("recordings", "none given", "give the cable's recordings")
     count = recordings[0].marker_count
