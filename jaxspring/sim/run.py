@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .rollout import frame_count, simulate
+from .rollout import energy, frame_count, simulate
 from .scene import Scene
 from .stability import (
     BlowUp,
@@ -20,7 +20,7 @@ from .stability import (
     first_bad_frame,
     locate_blowup,
 )
-from .state import Trajectory
+from .state import State, Trajectory
 
 CHUNK_STEPS = 2000
 
@@ -124,6 +124,6 @@ def run_scene(
         v=jnp.asarray(v_all),
         t=jnp.asarray(np.arange(x_all.shape[0]) * save_every * model.dt, dtype=x_all.dtype),
     )
-    e_start = float(model.energy(params, trajectory.frame(0)))
-    e_end = float(model.energy(params, trajectory.frame(-1)))
+    e_start = float(energy(model, params, State(x=x_all[0], v=v_all[0])))
+    e_end = float(energy(model, params, State(x=x_all[-1], v=v_all[-1])))
     return RunResult(trajectory, done * save_every, compile_s, wall, e_start, e_end, stability, blowup)

@@ -13,7 +13,7 @@ import numpy as np
 from .integrators import INTEGRATORS, as_integrator
 from .model import Model
 from .params import Params
-from .rollout import energy, simulate
+from .rollout import energy, simulate, term_energies
 from .state import State, Trajectory
 
 ENERGY_GAIN_FACTOR = 0.5  # energy may not grow by more than this fraction of the energy scale
@@ -208,12 +208,12 @@ def energy_threshold(model: Model, params: Params, state: State) -> float:
     ENERGY_GAIN_FACTOR times a generous scale (kinetic + potential magnitudes
     plus the weight times the size of the scene) for integration error.
     """
-    e0 = float(model.energy(params, state))
+    e0 = float(energy(model, params, state))
     x = np.asarray(state.x)
     size = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0))) + 1.0
     scale = 1.0 + abs(e0) + 0.5 * float(np.sum(np.asarray(model.mass)[:, None] * np.asarray(state.v) ** 2))
-    for term in model.force_terms:
-        scale += abs(float(term.energy(model, params, state.x)))
+    for term_energy in term_energies(model, params, state.x):
+        scale += abs(float(term_energy))
     if model.has("gravity"):
         scale += float(np.sum(np.asarray(model.mass)) * np.linalg.norm(np.asarray(params.gravity))) * size
     return e0 + ENERGY_GAIN_FACTOR * scale
