@@ -156,6 +156,7 @@ def main(argv=None) -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     parser.add_argument("--iterations", type=int, help="most iterations per stage (default: js.fit's; for tests)")
     parser.add_argument("--search-starts", type=int, help="start search starts (default: js.fit's; 1: no search)")
+    parser.add_argument("--dt", type=float, default=5e-5, help="the generator's time step, when data is made")
     parser.add_argument("--out", help="results file (default benchmarks/results/harness_<grasp>_<train>x<frames>.md)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -173,7 +174,7 @@ def main(argv=None) -> None:
         import harness_recordings
 
         harness_recordings.make_harness_recordings(
-            folder, train=args.train, held_out=args.held_out, frames=args.frames, grasp=args.grasp
+            folder, train=args.train, held_out=args.held_out, frames=args.frames, grasp=args.grasp, dt=args.dt
         )
     grasp = json.loads((folder / "truth.json").read_text())["grasp"]
     title = (

@@ -222,7 +222,7 @@ def random_path(rng):
     )
 
 
-def make_harness_recordings(out_dir, train=8, held_out=14, seed=0, frames=500, grasp="ends"):
+def make_harness_recordings(out_dir, train=8, held_out=14, seed=0, frames=500, grasp="ends", dt=DT):
     """Simulate train + held_out recordings; write them and truth.json under out_dir; the truth dict."""
     out = Path(out_dir)
     x, masses, springs, rest, k, sections = build()
@@ -235,7 +235,7 @@ def make_harness_recordings(out_dir, train=8, held_out=14, seed=0, frames=500, g
     rngs = [np.random.default_rng([seed, k]) for k in range(train + held_out)]
     paths = [random_path(rng) for rng in rngs]
     batch = {name: jnp.asarray(np.stack([p[name] for p in paths])) for name in paths[0]}
-    xs = np.asarray(jax.jit(jax.vmap(lambda p: simulate(model, p, frames)))(batch))
+    xs = np.asarray(jax.jit(jax.vmap(lambda p: simulate(model, p, frames, dt)))(batch))
     if not np.isfinite(xs).all():
         raise RuntimeError("the harness blew up: lower dt")
     markers = xs[:, :, rings].mean(axis=3)  # section centroids, (R, F, M, 3)
@@ -256,7 +256,7 @@ def make_harness_recordings(out_dir, train=8, held_out=14, seed=0, frames=500, g
         )
         records.append(dict(file=str(file.relative_to(out)), seed=[seed, r], gaps=gaps))
     truth = dict(branches=BRANCHES, marker_sections=MARKER_SECTIONS, edges=edges, driven=DRIVEN[grasp], grasp=grasp)
-    truth |= dict(gravity=GRAVITY, dt=DT, fps=FPS, frames=frames, noise_std=NOISE, section_spacing=H)
+    truth |= dict(gravity=GRAVITY, dt=dt, fps=FPS, frames=frames, noise_std=NOISE, section_spacing=H)
     truth |= dict(
         mass=float(masses.sum()), particles=int(x.shape[0]), springs=int(springs.shape[0]), recordings=records
     )

@@ -4,8 +4,11 @@ junction bending against hand-built expectations, gravity read for trees and gra
 
 import contextlib
 import io
+import re
 import tomllib
 
+import hypothesis
+import hypothesis.strategies as st
 import jax
 import numpy as np
 import pytest
@@ -153,6 +156,9 @@ def test_bad_graphs_are_refused_in_one_line_naming_the_edge(edges, words):
 
 def test_chain_only_options_and_branch_groups():
     recs = [still(PARENT + BRANCH)]
+    for bad in (5, [np.zeros((3, 10, 3))]):  # not recordings at all: one line, not a TypeError
+        with pytest.raises(InputError, match="recordings"):
+            js.cable_scene(bad, edges=EDGES)
     with pytest.raises(InputError, match='give groups = "branch"'):
         js.cable_scene(recs, edges=EDGES, groups=2, gravity=(0, -9.81, 0))
     with pytest.raises(InputError, match='"straight" needs a chain'):
@@ -217,8 +223,69 @@ def test_cable_fit_predict_runs_end_to_end_on_a_generated_harness(tmp_path, caps
     assert main(["fit", str(out / "experiment.toml"), "--iterations", "4", "--quiet", "--out", str(fit_file)]) == 0
     fitted = capsys.readouterr().out
     assert "held-out" in fitted and "per marker" in fitted, fitted
+    compiling, whole = (float(v) for v in re.search(r"compiling: ([\d.]+) s of the fit's ([\d.]+) s", fitted).groups())
+    assert 0 <= compiling <= whole
     assert main(["predict", str(fit_file), str(tmp_path / "held" / "take0.h5"), "--out-dir", str(tmp_path / "p")]) == 0
     line = next(row for row in capsys.readouterr().out.splitlines() if row.startswith("take0"))
     error, _, _, frozen, _ = (float(v.strip(",")) for v in line.split()[1:])
     assert error < 0.4 * frozen, line  # the fitted harness predicts the held-out take, not the frozen start
     assert (tmp_path / "p" / "take0.h5").exists()
+
+
+def test_the_harness_benchmark_runs_at_a_small_size(tmp_path, monkeypatch):
+    """benchmarks/harness.py end to end on 2 short takes of the volumetric rod harness (its own
+    model, not jaxspring's): the tree scene fitted in its own process (3 iterations, no start
+    search) predicts the held-out take better than the frozen floor, in one table."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    monkeypatch.setattr(sys, "path", list(sys.path))  # main puts benchmarks/ on it
+    root = Path(__file__).parents[1]
+    spec = importlib.util.spec_from_file_location("harness_benchmark", root / "benchmarks" / "harness.py")
+    harness = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(harness)
+    out = tmp_path / "harness.md"
+    argv = ["--data", str(tmp_path / "data"), "--out", str(out), "--variants", "tree", "--dt", "1e-4"]
+    argv += ["--train", "2", "--held-out", "1", "--frames", "40", "--iterations", "3", "--search-starts", "1"]
+    harness.main(argv)
+    rows = [line.split("|") for line in out.read_text().splitlines() if line.startswith("| ") and "[" not in line]
+    errors = {r[1].strip(): float(r[8]) for r in rows}  # held-out mean abs. error per coordinate [mm]
+    floor = errors.pop("floor: free markers frozen at the start frame")
+    assert len(errors) == 1 and all(0 < e < floor for e in errors.values()), errors
+    assert "inferred from how the markers sag" in out.read_text()
+
+
+@hypothesis.settings(max_examples=40, deadline=None, derandomize=True)
+@hypothesis.given(st.data())
+def test_any_marker_tree_is_laid_out_whole_and_any_extra_edge_is_a_cycle(data):
+    """Random trees (a Pruefer sequence), given in a random order and direction: every marker gets
+    its own particle, the particles form one tree (n - 1 stretch springs), every particle with
+    d >= 2 neighbours gets d (d - 1) / 2 bend triples, and one edge more is refused as a cycle."""
+    from jaxspring.io.cable_tree import TreeLayout, marker_edges
+
+    count = data.draw(st.integers(3, 12))
+    code = data.draw(st.lists(st.integers(0, count - 1), min_size=count - 2, max_size=count - 2))
+    degree = [1 + code.count(k) for k in range(count)]
+    edges = []
+    for k in code:  # decode: join the lowest leaf to k
+        leaf = min(i for i in range(count) if degree[i] == 1)
+        edges.append((leaf, k))
+        degree[leaf] -= 1
+        degree[k] -= 1
+    edges.append(tuple(i for i in range(count) if degree[i] == 1))
+    edges = [e[::-1] if data.draw(st.booleans()) else e for e in data.draw(st.permutations(edges))]
+    layout = TreeLayout(marker_edges(edges, count), count)
+    splits = data.draw(st.lists(st.integers(1, 3), min_size=count - 1, max_size=count - 1))
+    layout.number(splits)
+    assert sorted(layout.markers.tolist()) == sorted(set(layout.markers.tolist()))
+    assert layout.count == 1 + sum(splits)
+    pairs, _ = layout.springs()
+    assert len(pairs) == layout.count - 1 and len({tuple(sorted(p)) for p in pairs.tolist()}) == len(pairs)
+    near = np.bincount(pairs.ravel(), minlength=layout.count)
+    x = np.random.default_rng(0).normal(size=(layout.count, 3))
+    assert len(layout.triples(x)) == int(sum(d * (d - 1) // 2 for d in near))
+    a, b = data.draw(st.permutations(range(count)))[:2]
+    if (a, b) not in edges and (b, a) not in edges:
+        with pytest.raises(InputError, match="closes a cycle"):
+            marker_edges(edges + [(a, b)], count)

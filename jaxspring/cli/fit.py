@@ -12,6 +12,9 @@ from ..fit.settings import OPTIMIZERS
 from ..steppers import BACKENDS
 from .common import BACKEND_HELP, check_output, parse_sets
 
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+"""JAX's monitoring event for one XLA compile (its duration is summed into the fit's compile time)."""
+
 
 def add_parser(sub):
     parser = sub.add_parser("fit", help="fit physical parameters to a recorded or synthetic trajectory")
@@ -140,6 +143,7 @@ def command(args):
     import copy
     import signal
 
+    import jax
     from tqdm.auto import tqdm
 
     from ..errors import BlowUpError, InputError
@@ -215,6 +219,13 @@ def command(args):
         interrupted.append(signum)
 
     previous = {sig: signal.signal(sig, terminate) for sig in (signal.SIGINT, signal.SIGTERM)}
+    compile_s = [0.0]  # XLA's compile time inside the fit, reported apart from the rest
+
+    def compiled(event, duration, **_):
+        if event == COMPILE_EVENT:
+            compile_s[0] += duration
+
+    jax.monitoring.register_event_duration_secs_listener(compiled)
     try:
         with bar:
             result = fit_batch(
@@ -248,10 +259,12 @@ def command(args):
             )
         return 130
     finally:
+        jax.monitoring.unregister_event_duration_listener(compiled)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     plot_fit(result, plot)
     print(result.table())
+    print(f"compiling: {compile_s[0]:.1f} s of the fit's {result.wall_s:.1f} s")
     if held_out:
         _evaluate(experiment, result, held_out, fitted_markers)
     print(f"wrote {out} and {plot}")
