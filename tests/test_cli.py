@@ -120,3 +120,34 @@ def test_demo_on_a_fresh_process(tmp_path):
         scene, traj = js.load_trajectory(tmp_path / "demo" / f"{name}.h5")
         assert np.isfinite(np.asarray(traj.x)).all()
         assert name in result.stdout
+
+
+def test_commands_keep_their_compiled_programs_for_the_next_one(tmp_path):
+    """Without a cache chosen by the user, a command writes JAX's compilation cache under
+    $XDG_CACHE_HOME/jaxspring/jax and the next one reads it (no program is compiled twice);
+    JAXSPRING_COMPILE_CACHE=0 writes none."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    run = [sys.executable, "-m", "jaxspring", "run", "mass_spring", "--steps", "20", "--out", "o.h5", "--quiet"]
+    for setting, cache in (("0", tmp_path / "off"), ("1", tmp_path / "on")):
+        env.update(XDG_CACHE_HOME=str(cache), JAXSPRING_COMPILE_CACHE=setting, JAX_LOG_COMPILES="1")
+        first = subprocess.run(run, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert first.returncode == 0, first.stderr
+        kept = sorted((cache / "jaxspring" / "jax").glob("*")) if cache.exists() else []
+        if setting == "0":
+            assert not kept
+            continue
+        assert kept  # the programs of the first run
+        again = subprocess.run(run, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        assert again.returncode == 0, again.stderr
+
+        def compiling(text):  # seconds in XLA compiles (a program loaded from the cache takes ~ms)
+            return sum(float(s) for s in re.findall(r"Finished XLA compilation of .* in ([\d.e-]+) sec", text))
+
+        assert compiling(again.stderr) < 0.2 * compiling(first.stderr), (
+            compiling(first.stderr),
+            compiling(again.stderr),
+        )

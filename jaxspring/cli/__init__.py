@@ -40,6 +40,7 @@ def build_parser() -> Parser:
 def main(argv=None) -> int:
     """Entry point of the `jaxspring` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
+    keep_compiled_programs()
     import warnings
 
     import numpy as np
@@ -62,3 +63,30 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("jaxspring: interrupted; no output file was written", file=sys.stderr)
         return 130
+
+
+COMPILE_CACHE_SIZE = 2**30
+"""Bytes the kept compiled programs may take; the least recently used go first."""
+
+
+def keep_compiled_programs() -> None:
+    """Keep what one command compiles for the next (JAX's persistent compilation cache, in
+    $XDG_CACHE_HOME/jaxspring/jax or ~/.cache/jaxspring/jax): a fit resumed, run again or
+    predicted from loads its programs instead of compiling them. Entries are keyed by the
+    program, the JAX version and the machine, so a stale one is never used. A cache the user
+    chose (JAX_COMPILATION_CACHE_DIR) is left as it is; JAXSPRING_COMPILE_CACHE=0 turns it off."""
+    import os
+
+    import jax
+
+    if jax.config.jax_compilation_cache_dir or os.environ.get("JAXSPRING_COMPILE_CACHE", "1") == "0":
+        return
+    home = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    folder = os.path.join(home, "jaxspring", "jax")
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:  # no writable cache folder: compile every time, as before
+        return
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_compilation_cache_max_size", COMPILE_CACHE_SIZE)
