@@ -291,3 +291,32 @@ def test_any_marker_tree_is_laid_out_whole_and_any_extra_edge_is_a_cycle(data):
     if (a, b) not in edges and (b, a) not in edges:
         with pytest.raises(InputError, match="closes a cycle"):
             marker_edges(edges + [(a, b)], count)
+
+
+def test_jaxspring_cable_refuses_bad_graphs_and_foreign_files_in_one_line(tmp_path, capsys):
+    js.io.save_recording(tmp_path / "r.h5", still(PARENT + BRANCH, frames=3))
+    (tmp_path / "edges.txt").write_text("# parent\n0 1\n1-2\n2,3\n3 4\n4 5\n5 6\n3 7  # the branch\n7 8\n8 9\n")
+    base = ["cable", str(tmp_path / "r.h5"), "--driven", "0,1,5,6", "--gravity", "0,-9.81,0"]
+    edges = str(tmp_path / "edges.txt")
+    cases = [
+        (["--edges", "0-1,1-2,2-3,3-4,4-5,5-6,3-7,7-8,8-9,9-3"], "edge (9, 3) closes a cycle"),
+        (["--edges", "0-1,1-2,2-3,3-4,4-5,5-6,3-7,7-8"], "marker 9 is in no edge"),
+        (["--edges", "0-1,1-2,2-3,3-4,4-5,5-6,3-7,7-8,8-10"], "marker 10 is outside -10..9"),
+        (["--edges", "0-1,1:2"], "'1:2' in --edges is not an edge"),
+        (["--edges", edges, "--gravity", "0,x,0"], "--gravity: 'x' is not a number"),
+        (["--edges", edges, "--mass", "-1"], "mass: is -1.0"),
+        (["--edges", edges, "--start", "0"], "start/smooth: are 0/5"),
+    ]
+    for extra, words in cases:
+        assert main([*base, *extra, "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()  # refused before anything is made or written
+    assert main([*base, "--edges", edges, "--out", str(tmp_path / "out")]) == 0
+    assert js.load_scene(tmp_path / "out" / "cable.toml").model.particle_count == 10
+    springs = {tuple(sorted(pair)) for pair in js.load_scene(tmp_path / "out" / "cable.toml").model.springs.tolist()}
+    assert (3, 7) in springs and (6, 7) not in springs  # the file's tree: the branch leaves marker 3
+    (tmp_path / "out" / "experiment.toml").write_text("# my own notes\n")
+    assert main([*base, "--edges", edges, "--out", str(tmp_path / "out")]) == 2
+    assert "was not written by `jaxspring cable`" in capsys.readouterr().err
+    assert (tmp_path / "out" / "experiment.toml").read_text() == "# my own notes\n"

@@ -77,8 +77,6 @@ def command(args):
         groups=groups,
         mass=args.mass,
     )
-    out.mkdir(exist_ok=True)
-    check_writable(out, "--out")
 
     def relative(paths):
         return [Path(os.path.relpath(Path(p).resolve(), out.resolve())).as_posix() for p in paths]
@@ -89,6 +87,8 @@ def command(args):
             relative(args.recordings), start=args.start, smooth=args.smooth, evaluate=relative(args.evaluate)
         ),
     ]
+    out.mkdir(exist_ok=True)  # every refusal came before: nothing is made or written for a bad input
+    check_writable(out, "--out")
     for path, text in zip(targets, texts, strict=True):
         with atomic_path(path) as tmp:
             Path(tmp).write_text(f"{MARK}\n{text}")

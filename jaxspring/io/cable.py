@@ -21,6 +21,7 @@ and the driven particles (`driven`), ready for `js.scene_from_dict` and
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -167,6 +168,12 @@ def cable_scene(
         raise InputError("recordings", "have different marker counts", "give recordings of one marker set")
     if count < 3:
         raise InputError("recordings", f"have {count} markers", "a cable needs at least 3 markers")
+    try:
+        mass = float(mass)
+    except (TypeError, ValueError):
+        raise InputError("mass", f"is {mass!r:.40}", "give the object's mass in kg, e.g. 0.2") from None
+    if not (math.isfinite(mass) and mass > 0):
+        raise InputError("mass", f"is {mass}", "give a positive mass in kg, e.g. 0.2")
     layout = TreeLayout(marker_edges(edges, count), count)
     subdivide = whole_number("subdivide", subdivide)
     if groups != "branch":
