@@ -72,6 +72,7 @@ HEAVY_FIRST = [
     "test_hard_cases.py",
     "test_free_shooting.py",
     "test_cable.py",
+    "test_cable_tree.py",
     "test_kill.py",
     "test_horizon.py",
     "test_notebooks.py",

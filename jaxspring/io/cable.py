@@ -1,21 +1,25 @@
-"""A cable scene built from its recordings: particles through the markers, rest shape from the data.
+"""A cable or harness scene built from its recordings: particles through the markers, rest shape from the data.
 
-A tracked cable has a few markers; `cable_scene` threads a chain of particles through them
-(`subdivide` particle intervals between two neighbouring free markers), with stretch springs
-(i, i + 1) and either bend springs (i, i + 2) or, with `bending=True`, the bending term on
-every three neighbours (a rod's stiffness kb and damping kbd on the turning angle, which
-leaves stretching to the stretch springs), so that the cable bends smoothly between markers
-instead of at them. The rest shape comes from the data, not a straight line: each marker
-interval's rest chord is the median over every seen frame of the markers' distance, and the
-shape within and across intervals (the natural curvature) is that of a reference frame,
-interpolated by a centripetal Catmull-Rom spline through its markers. Each end is clamped with its
-orientation by driving two of its markers (`driven`, marker indices), which hold the end's
-tangent; `groups` splits the springs of the free cable into that many consecutive
-segment groups (`stretch_1`, `bend_1`, ...), each with its own stiffness and damping.
+A tracked cable has a few markers; `cable_scene` threads particles through them along the
+marker tree's edges (a chain by default, any tree for a harness with branches; `subdivide`
+particle intervals between two neighbouring markers that are not both driven), with stretch
+springs between neighbouring particles and either bend springs or, with `bending=True`, the
+bending term on every particle's two neighbours (at a junction on every two of its
+neighbours): a rod's stiffness kb and damping kbd on the turning angle, which leaves
+stretching to the stretch springs, so that the cable bends smoothly between markers instead
+of at them. The rest shape comes from the data, not a straight line: each marker interval's
+rest chord is the median over every seen frame of the markers' distance, and the shape
+within and across intervals (the natural curvature) is that of a reference frame,
+interpolated by centripetal Catmull-Rom splines through its markers (`cable_tree`). Each end
+is clamped with its orientation by driving two of its markers (`driven`, marker indices,
+anywhere on the object); `groups` splits a chain's free springs into that many consecutive
+segment groups (`stretch_1`, `bend_1`, ...), or gives each branch its own ("branch").
+Gravity is given or read from the sag (`sag`), never assumed.
 
 The result is a scene file's table (`scene`), the particle carrying each marker (`markers`)
 and the driven particles (`driven`), ready for `js.scene_from_dict` and
-`js.recording_target`, or as TOML text for a scene file (`toml()`).
+`js.recording_target`, or as the text of a scene file (`toml()`) and of an experiment that
+fits it (`experiment()`): what `jaxspring cable` writes.
 """
 
 from __future__ import annotations
@@ -142,10 +146,11 @@ def cable_scene(
             and kbd [N m^2 s] are a rod's, independent of the particles); defaults suit a 1 m cable.
         dt: the scene's time step [s].
         gravity: [m/s^2] in the recordings' axes. None (default): inferred from the direction the
-            markers sag from the line between the two held places farthest apart (or hang below
-            a single grasp), snapped to a coordinate axis within 15 degrees, printed and written
-            into the scene (`cable_gravity`). A given vector more than 45 degrees from that
-            direction is refused: a wrong up axis would fit the wrong physics without a word.
+            markers sag from the line between the two held places farthest apart, snapped to a
+            coordinate axis within 15 degrees, printed and written into the scene
+            (`cable_gravity`); refused where the object is held at one place only (no sag shows
+            down there: give it). A given vector more than 45 degrees from the sag is refused: a
+            wrong up axis would fit the wrong physics without a word.
         edges: marker index pairs (i, j) that are neighbours along the object, forming a tree
             over every marker (default: the chain 0-1-...-(M-1)). A marker with three or more
             neighbours is a junction.
