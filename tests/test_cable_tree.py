@@ -177,6 +177,7 @@ def test_chain_only_options_and_branch_groups():
     ]
 
 
+@pytest.mark.slow
 def test_gravity_is_read_for_a_harness_between_grippers_and_below_one_grasp():
     for up, axis in ((1, "y"), (2, "z")):
         _, printed = quiet_scene(harness_recordings(up=up, takes=1, frames=20), edges=EDGES, driven=GRIPPERS)
@@ -194,6 +195,7 @@ def test_gravity_is_read_for_a_harness_between_grippers_and_below_one_grasp():
         js.cable_scene(harness_recordings(takes=1, frames=20, held=(0, 1, 3)), edges=EDGES, driven=(0, 1, 3))
 
 
+@pytest.mark.slow
 def test_cable_fit_predict_runs_end_to_end_on_a_generated_harness(tmp_path, capsys):
     train, held_out = harness_recordings(takes=2, frames=40), harness_recordings(takes=1, frames=40, seed=7)
     for folder, recs in (("train", train), ("held", held_out)):
@@ -232,6 +234,7 @@ def test_cable_fit_predict_runs_end_to_end_on_a_generated_harness(tmp_path, caps
     assert (tmp_path / "p" / "take0.h5").exists()
 
 
+@pytest.mark.slow
 def test_the_harness_benchmark_runs_at_a_small_size(tmp_path, monkeypatch):
     """benchmarks/harness.py end to end on 2 short takes of the volumetric rod harness (its own
     model, not jaxspring's): the tree scene fitted in its own process (3 iterations, no start

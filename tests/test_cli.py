@@ -122,6 +122,7 @@ def test_demo_on_a_fresh_process(tmp_path):
         assert name in result.stdout
 
 
+@pytest.mark.slow
 def test_commands_keep_their_compiled_programs_for_the_next_one(tmp_path):
     """Without a cache chosen by the user, a command writes JAX's compilation cache under
     $XDG_CACHE_HOME/jaxspring/jax and the next one reads it (no program is compiled twice);
