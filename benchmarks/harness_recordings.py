@@ -244,7 +244,7 @@ def make_harness_recordings(out_dir, train=8, held_out=14, seed=0, frames=500, g
         seen = markers[r] + rng.normal(0.0, NOISE, markers[r].shape)
         free = [m for m in range(len(rings)) if m not in DRIVEN[grasp]]
         gaps = []
-        for _ in range(rng.integers(1, 3)):
+        for _ in range(rng.integers(1, 3) if frames > 30 else 0):  # drop-outs inside longer takes
             m, length = int(rng.choice(free)), int(rng.integers(3, 9))
             first = int(rng.integers(8, frames - 5 - length + 1))
             seen[first : first + length, m] = np.nan

@@ -287,6 +287,15 @@ def test_any_marker_tree_is_laid_out_whole_and_any_extra_edge_is_a_cycle(data):
     assert layout.count == 1 + sum(splits)
     pairs, _ = layout.springs()
     assert len(pairs) == layout.count - 1 and len({tuple(sorted(p)) for p in pairs.tolist()}) == len(pairs)
+    reached, todo = {0}, [0]  # the springs join every particle: one tree
+    while todo:
+        u = todo.pop()
+        for a, b in pairs.tolist():
+            for w in (b,) if a == u else (a,) if b == u else ():
+                if w not in reached:
+                    reached.add(w)
+                    todo.append(w)
+    assert reached == set(range(layout.count))
     near = np.bincount(pairs.ravel(), minlength=layout.count)
     x = np.random.default_rng(0).normal(size=(layout.count, 3))
     assert len(layout.triples(x)) == int(sum(d * (d - 1) // 2 for d in near))
@@ -301,6 +310,7 @@ def test_jaxspring_cable_refuses_bad_graphs_and_foreign_files_in_one_line(tmp_pa
     (tmp_path / "edges.txt").write_text("# parent\n0 1\n1-2\n2,3\n3 4\n4 5\n5 6\n3 7  # the branch\n7 8\n8 9\n")
     base = ["cable", str(tmp_path / "r.h5"), "--driven", "0,1,5,6", "--gravity", "0,-9.81,0"]
     edges = str(tmp_path / "edges.txt")
+    (tmp_path / "edges.bin").write_bytes(b"\xff\xfe\x00\x81")
     cases = [
         (["--edges", "0-1,1-2,2-3,3-4,4-5,5-6,3-7,7-8,8-9,9-3"], "edge (9, 3) closes a cycle"),
         (["--edges", "0-1,1-2,2-3,3-4,4-5,5-6,3-7,7-8"], "marker 9 is in no edge"),
@@ -309,6 +319,7 @@ def test_jaxspring_cable_refuses_bad_graphs_and_foreign_files_in_one_line(tmp_pa
         (["--edges", edges, "--gravity", "0,x,0"], "--gravity: 'x' is not a number"),
         (["--edges", edges, "--mass", "-1"], "mass: is -1.0"),
         (["--edges", edges, "--start", "0"], "start/smooth: are 0/5"),
+        (["--edges", str(tmp_path / "edges.bin")], "cannot be read"),
     ]
     for extra, words in cases:
         assert main([*base, *extra, "--out", str(tmp_path / "out")]) == 2
@@ -323,3 +334,42 @@ def test_jaxspring_cable_refuses_bad_graphs_and_foreign_files_in_one_line(tmp_pa
     assert main([*base, "--edges", edges, "--out", str(tmp_path / "out")]) == 2
     assert "was not written by `jaxspring cable`" in capsys.readouterr().err
     assert (tmp_path / "out" / "experiment.toml").read_text() == "# my own notes\n"
+
+
+def test_trees_numbered_from_elsewhere_folded_junctions_and_chains_out_of_order():
+    # marker 0 in the middle of the tree: the layout starts at the first leaf (marker 1) and the
+    # experiment and target follow the numbering
+    shape = [[0.1, 0.0, 0.0], [0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.1, 0.0, 0.1], [0.3, 0.0, 0.0]]
+    edges = [(1, 0), (0, 2), (0, 3), (2, 4)]
+    cable, _ = quiet_scene([still(shape)], edges=edges, driven=(1, 4), bending=True, gravity=(0, -9.81, 0))
+    assert cable.markers == [1, 0, 2, 4, 3] and cable.driven == [0, 3]
+    assert "markers = [1, 0, 2, 4, 3]" in cable.experiment(["a.h5"])
+    scene = js.scene_from_dict(cable.scene)
+    js.recording_target(scene, [still(shape, frames=6)], markers=cable.markers, driven=cable.driven, start=1)
+    # a branch folded back 170 degrees on the parent: that pair of the junction's neighbours gets
+    # no triple (2 tan(85 deg) is too steep to step), the others do
+    back = [0.1 - 0.1 * np.cos(np.radians(10)), 0.1 * np.sin(np.radians(10)), 0.0]
+    folded, _ = quiet_scene(
+        [still([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0], back])],
+        edges=[(0, 1), (1, 2), (1, 3)],
+        driven=(0, 2),
+        bending=True,
+        gravity=(0, -9.81, 0),
+    )
+    assert sorted(map(tuple, folded.scene["bending"]["triples"])) == [(0, 1, 2), (2, 1, 3)]
+    # a chain numbered out of order along itself: the segment groups follow the chain, not the numbers
+    order = [6, 0, 1, 2, 5, 4, 3]
+    line = [None] * 7
+    for place, marker in enumerate(order):
+        line[marker] = [0.1 * place, 0.0, 0.0]
+    chain, _ = quiet_scene(
+        [still(line)], edges=list(zip(order[:-1], order[1:])), driven=(6, 0, 4, 3), groups=3, gravity=(0, -9.81, 0)
+    )
+    stretch = [g for g in chain.scene["springs"] if g["name"].startswith("stretch")]
+    assert [g["name"] for g in stretch] == ["stretch_1", "stretch_2", "stretch_3"]
+    assert [0, 1] in stretch[0]["pairs"] and [5, 6] in stretch[2]["pairs"]  # each gripper's interval at its end
+    # one group per branch with the bending term: stretch groups only, one kb and kbd
+    branchy, _ = quiet_scene(
+        [still(PARENT + BRANCH)], edges=EDGES, driven=GRIPPERS, groups="branch", bending=True, gravity=(0, -9.81, 0)
+    )
+    assert branchy.params == ["ks.stretch_1", "kd.stretch_1", "ks.stretch_2", "kd.stretch_2", "cd", "kb", "kbd"]

@@ -87,10 +87,10 @@ def command(args):
             relative(args.recordings), start=args.start, smooth=args.smooth, evaluate=relative(args.evaluate)
         ),
     ]
+    check_writable(out if out.is_dir() else out.parent, "--out")
     out.mkdir(exist_ok=True)  # every refusal came before: nothing is made or written for a bad input
-    check_writable(out, "--out")
-    for path, text in zip(targets, texts, strict=True):
-        with atomic_path(path) as tmp:
+    with atomic_path(targets[0]) as scene_tmp, atomic_path(targets[1]) as experiment_tmp:
+        for tmp, text in zip((scene_tmp, experiment_tmp), texts, strict=True):  # both renamed, or neither
             Path(tmp).write_text(f"{MARK}\n{text}")
     print(
         f"wrote {targets[0]} ({len(cable.scene['particles']['mass'])} particles) and {targets[1]} "
@@ -124,7 +124,12 @@ def _edges(text):
     if text is None:
         return None
     if Path(text).is_file():
-        items = [line.split("#")[0].strip() for line in Path(text).read_text().splitlines()]
+        try:
+            items = [line.split("#")[0].strip() for line in Path(text).read_text().splitlines()]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(
+                "--edges", f"file {text!r} cannot be read ({exc})", "give a text file, one edge per line"
+            ) from None
         source = f"file {text!r}"
     else:
         items = text.split(",")

@@ -254,8 +254,9 @@ def cable_scene(
         spring_group = np.array(layout.branches(shape))[on_edge]
         group_count = int(spring_group.max()) + 1
     else:
-        low = [markers[d] for d in driven_markers if d < count / 2]
-        high = [markers[d] for d in driven_markers if d >= count / 2]
+        # a chain is numbered along itself: the ends' driven particles by their place on it
+        low = [markers[d] for d in driven_markers if markers[d] < (n - 1) / 2]
+        high = [markers[d] for d in driven_markers if markers[d] >= (n - 1) / 2]
         first, last = (max(low) if low else 0), (min(high) if high else n - 1)
         spring_group = _group_of((pairs[:, 0] + pairs[:, 1]) / 2, first, last, groups)
         group_count = groups

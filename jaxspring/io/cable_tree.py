@@ -67,7 +67,7 @@ def marker_edges(edges, count: int) -> list[tuple[int, int]]:
             raise InputError(
                 "edges",
                 f"marker {k} is in no edge",
-                f"join it to its neighbour along the object, e.g. ({k}, {k - 1 or 1})",
+                f"join it to its neighbour along the object, e.g. ({k}, {k - 1 if k else 1})",
             )
     if len(out) != count - 1:
         apart = [k for k in range(count) if find(k) != find(0)]
