@@ -12,8 +12,6 @@
 
 from __future__ import annotations
 
-import functools
-
 import jax
 
 from ..errors import InputError
@@ -74,8 +72,9 @@ def _bends(model) -> bool:
     return any(term.name == "bending" for term in model.force_terms)
 
 
-@functools.cache
 def _native_is_faster() -> bool:
+    # not cached here: `available` is, and clearing its cache (a test that hides the kernel)
+    # must not leave every later model of the process on pure JAX
     return native_kernels.available() and jax.default_backend() == "cpu"
 
 
