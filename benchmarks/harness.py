@@ -32,6 +32,9 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE))
+from cables import load  # noqa: E402  (the same recordings reader as the chain cable benchmark)
+
 VARIANTS = {  # name: (description, cable_scene keyword arguments)
     "tree": ("a particle per marker, bending term (junctions too), dt 1 ms", dict(subdivide=1, bending=True)),
     "tree_dt": (
@@ -48,16 +51,6 @@ VARIANTS = {  # name: (description, cable_scene keyword arguments)
 START, SMOOTH, MASS = 5, 5, 0.25
 
 
-def load(folder: Path, part: str, frames: int, count: int | None = None):
-    import jaxspring as js
-
-    out = []
-    for path in sorted((folder / part).glob("*.h5"))[:count]:
-        r = js.load_recording(path)
-        out.append(js.Recording(t=r.t[:frames], x=r.x[:frames], markers=r.markers))
-    return out
-
-
 def run_variant(folder: Path, name: str, frames: int, train: int, held_out: int, iterations=None, starts=None) -> dict:
     """Fit one variant in this process and predict the held-out recordings; the numbers as a dict."""
     import jax
@@ -67,28 +60,14 @@ def run_variant(folder: Path, name: str, frames: int, train: int, held_out: int,
 
     truth = json.loads((folder / "truth.json").read_text())
     train_recs, held = load(folder, "train", frames, train), load(folder, "held_out", frames, held_out)
+    shape = dict(edges=truth["edges"], driven=truth["driven"], mass=MASS, reference=(0, START), **VARIANTS[name][1])
     with contextlib.redirect_stdout(io.StringIO()) as said:
         try:
-            cable = js.cable_scene(
-                train_recs,
-                edges=truth["edges"],
-                driven=truth["driven"],
-                mass=MASS,
-                reference=(0, START),
-                **VARIANTS[name][1],
-            )
+            cable = js.cable_scene(train_recs, **shape)
         except js.InputError as exc:  # a single grasp shows no sag: the user gives gravity
             if "held at one place only" not in str(exc):
                 raise
-            cable = js.cable_scene(
-                train_recs,
-                edges=truth["edges"],
-                driven=truth["driven"],
-                mass=MASS,
-                reference=(0, START),
-                gravity=truth["gravity"],
-                **VARIANTS[name][1],
-            )
+            cable = js.cable_scene(train_recs, gravity=truth["gravity"], **shape)
     scene = js.scene_from_dict(cable.scene)
     options = dict(markers=cable.markers, driven=cable.driven, start=START, smooth=SMOOTH)
     target = js.recording_target(scene, train_recs, **options)
@@ -189,7 +168,6 @@ def main(argv=None) -> None:
         raise SystemExit(f"unknown variant {unknown[0]!r}: give some of {', '.join(VARIANTS)}")
     folder = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="jaxspring-harness-"))
     if not (folder / "truth.json").exists():
-        sys.path.insert(0, str(HERE))
         import harness_recordings
 
         harness_recordings.make_harness_recordings(
