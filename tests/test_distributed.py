@@ -44,7 +44,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.slow
-def test_two_processes_fit_like_one():
+def test_two_processes_fit_like_one(tmp_path):
     script = WORKER.replace("TESTS", repr(os.path.dirname(__file__)))
     port = str(_free_port())
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="")
@@ -52,26 +52,28 @@ def test_two_processes_fit_like_one():
         subprocess.Popen(
             [sys.executable, "-c", script, str(rank), port],
             env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
+            stdout=(tmp_path / f"out{rank}").open("w"),  # files, not pipes: nothing read while the fit below runs
+            stderr=(tmp_path / f"err{rank}").open("w"),
         )
         for rank in range(2)
     ]
     try:
-        finished = [worker.communicate(timeout=600) for worker in workers]
+        # the fit of one process, computed here while the workers start up and connect
+        rope = js.scene_from_dict(ROPE)
+        target = js.recording_target(rope, make_recordings(rope, 4, 30, noise=5e-4), driven=[0, 5], smooth=3)
+        # starts=1 here and in the workers: no start search (tests/test_search.py tests it; here it keeps the given start)
+        fitted = js.fit(rope, target, ["ks.stretch"], {"ks.stretch": 300.0}, iterations=10, identify=False, starts=1)
+        alone = float(fitted.final["ks.stretch"])
+        for worker in workers:
+            worker.wait(timeout=600)
     finally:
         for worker in workers:
             worker.kill()
     outputs = []
-    for worker, (out, err) in zip(workers, finished):
+    for rank, worker in enumerate(workers):
+        out, err = ((tmp_path / f"{kind}{rank}").read_text() for kind in ("out", "err"))
         assert worker.returncode == 0, err[-3000:]
         outputs.append(json.loads(out.split("RESULT", 1)[1].split()[0]))
-    rope = js.scene_from_dict(ROPE)
-    target = js.recording_target(rope, make_recordings(rope, 4, 30, noise=5e-4), driven=[0, 5], smooth=3)
-    # starts=1 here and in the workers: no start search (tests/test_search.py tests it; here it keeps the given start)
-    fitted = js.fit(rope, target, ["ks.stretch"], {"ks.stretch": 300.0}, iterations=10, identify=False, starts=1)
-    alone = float(fitted.final["ks.stretch"])
     assert outputs[0] == outputs[1]
     assert abs(outputs[0] / alone - 1) <= 1e-9, (outputs, alone)
     assert abs(alone / 300.0 - 1) > 0.05  # the fit moved

@@ -543,22 +543,17 @@ def test_interrupted_fit_resumes_to_the_same_result(tmp_path, uninterrupted_fit,
             np.testing.assert_array_equal(a[f"fit/history/{name}"][()], b[f"fit/history/{name}"][()])
 
 
-@pytest.mark.slow
-def test_resume_refuses_a_different_fit(tmp_path, capsys):
-    # the mass-spring experiment cut to 0.5 s (one direct stage): the refusal is about the settings
-    experiment = tmp_path / "mass_spring_short.toml"
-    experiment.write_text(
-        (ROOT / "fitting" / "mass_spring.toml")
-        .read_text()
-        .replace('scene = "../scenes/mass_spring.toml"', 'scene = "mass_spring"')
-        .replace("steps = 5000", "steps = 500")
-    )
-    out = tmp_path / "m.fit.h5"
-    assert main(["fit", str(experiment), "--out", str(out), "--quiet", "--iterations", "3"]) == 0
+@pytest.mark.slow  # on its own it runs the short chain fit it is refused against (the fixture)
+def test_resume_refuses_a_different_fit(uninterrupted_fit, capsys):
+    # the finished short chain fit, resumed with another iteration count: the refusal is about
+    # the settings, before any fitting, and leaves the file as it was
+    experiment = uninterrupted_fit.parent / "chain_short.toml"
+    before = uninterrupted_fit.read_bytes()
     capsys.readouterr()
-    assert main(["fit", str(experiment), "--out", str(out), "--quiet", "--iterations", "4", "--resume"]) == 2
+    assert main(_fit_args(experiment, uninterrupted_fit, "--iterations", "4", "--resume")) == 2
     err = capsys.readouterr().err
     assert "different fit" in err and "iterations" in err
+    assert uninterrupted_fit.read_bytes() == before
 
 
 def test_a_fit_never_returns_a_point_worse_than_one_it_passed():

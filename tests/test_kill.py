@@ -15,7 +15,7 @@ import pytest
 
 import jaxspring as js
 
-KILLS = 6  # each kill is a process start-up: 6 of each (3 for predict) keep the file near 2 minutes of CI
+KILLS = 4  # each kill is a process start-up: 4 of each (2 for predict), their moments stratified (`_moment`)
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
 
 
@@ -39,6 +39,14 @@ def _timed(*args, cwd) -> float:
     return time.perf_counter() - clock
 
 
+def _moment(rng, kill, kills, low, high) -> float:
+    """The `kill`-th of `kills` kill moments, as a fraction of a run's duration: drawn uniformly
+    in the kill-th of `kills` equal parts of [low, high], so that the kills together span the
+    whole range (start-up, compiling, the work, the final write) however few they are."""
+    width = (high - low) / kills
+    return low + width * (kill + rng.uniform())
+
+
 def _kill_after(process, seconds) -> tuple[bool, float]:
     """SIGKILL `process` after `seconds` unless it ended; whether it was killed, and when it
     ended [s] (a process that loads what an earlier one compiled ends sooner than timed)."""
@@ -54,23 +62,27 @@ def _kill_after(process, seconds) -> tuple[bool, float]:
 
 @pytest.mark.slow
 def test_run_killed_at_random_moments_leaves_an_old_or_new_complete_file(tmp_path, capsys):
+    from jaxspring.cli import main
+
     rng = np.random.default_rng(3)
     run = ["run", "mass_spring", "--steps", "3000", "--save-every", "10", "--out", "out.h5", "--quiet"]
-    _timed("run", "mass_spring", "--steps", "1000", "--save-every", "10", "--out", "out.h5", "--quiet", cwd=tmp_path)
+    # the old file, written in this process (a process start-up saved): any complete earlier output
+    out = str(tmp_path / "out.h5")
+    assert main(["run", "mass_spring", "--steps", "1000", "--save-every", "10", "--out", out, "--quiet"]) == 0
     old = (tmp_path / "out.h5").read_bytes()
     duration = _timed(*run, cwd=tmp_path)
     new = (tmp_path / "out.h5").read_bytes()
     (tmp_path / "out.h5").write_bytes(old)
     kills = outcomes = 0
     while kills < KILLS:
-        killed, ended = _kill_after(_start(*run, cwd=tmp_path), rng.uniform(0.5, 1.05) * duration)
+        killed, ended = _kill_after(_start(*run, cwd=tmp_path), _moment(rng, kills, KILLS, 0.5, 1.05) * duration)
         kills += killed
         duration = duration if killed else min(duration, ended)
         now = (tmp_path / "out.h5").read_bytes()
         assert now in (old, new) or _complete(tmp_path / "out.h5", 301)
         outcomes += now == new
         (tmp_path / "out.h5").write_bytes(old)
-    assert _timed(*run, cwd=tmp_path) > 0  # a later write removes what killed writes left
+    assert main([*run[:-3], "--out", out, "--quiet"]) == 0  # a later write removes what killed writes left
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h5"]
     with capsys.disabled():  # the count shows in CI's log
         print(f"\nkill test, run: {kills} kills, {outcomes} ended with the new file")
@@ -95,7 +107,7 @@ def test_fit_killed_at_random_moments_resumes_to_the_uninterrupted_result(tmp_pa
     while kills < KILLS:
         resume = ["--resume"] if (tmp_path / "killed.h5").exists() else []
         killed, ended = _kill_after(
-            _start(*fit, "--out", "killed.h5", *resume, cwd=tmp_path), rng.uniform(0.35, 0.9) * duration
+            _start(*fit, "--out", "killed.h5", *resume, cwd=tmp_path), _moment(rng, kills, KILLS, 0.35, 0.9) * duration
         )
         kills += killed
         if (tmp_path / "killed.h5").exists():
@@ -139,7 +151,9 @@ def test_predict_killed_at_random_moments_leaves_only_complete_predictions(tmp_p
     expected = {name: js.load_recording(tmp_path / "pred" / name).x for name in ("held1.h5", "held2.h5")}
     kills = 0
     while kills < KILLS // 2:
-        killed, ended = _kill_after(_start(*predict, cwd=tmp_path), rng.uniform(0.3, 1.0) * duration)
+        killed, ended = _kill_after(
+            _start(*predict, cwd=tmp_path), _moment(rng, kills, KILLS // 2, 0.3, 1.0) * duration
+        )
         kills += killed
         duration = duration if killed else min(duration, ended)
         for path in (tmp_path / "pred").iterdir():  # every file there is complete (or a killed write's leftover)

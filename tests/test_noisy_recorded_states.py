@@ -52,14 +52,42 @@ def test_the_noise_of_recorded_positions_is_measured_with_their_starts_fitted(no
         assert abs(variance / obs32.noise_std**2 - 1) < 0.1, variance / obs32.noise_std**2
 
 
+@pytest.fixture(scope="module")
+def dense_segment_fit(noisy_small_jelly):
+    """Segment 2's residual sum of squares with its start positions fitted by Gauss-Newton with
+    the dense forward-mode Jacobian solved by NumPy's least squares, iterated to convergence,
+    and before any step: the reference of both backends' fast fits (computed once)."""
+    from jaxspring.fit.position_shooting import _recorded_segments, _segment_misfit
+
+    scene, obs, truth = noisy_small_jelly
+    seg = _recorded_segments(scene, obs, ["ks", "kd"], truth, 10)
+    data = {key: value[2] for key, value in seg.data.items()}
+    forward = scene.model.forward_mode()
+    dense_params = forward.params_with(scene.params, {n: jnp.asarray(v) for n, v in truth.items()})
+    particles, free = jnp.asarray(obs.particles), jnp.asarray(seg.free)
+
+    def residual(s):
+        return _segment_misfit(forward, dense_params, particles, free, s, data, 10, obs.save_every)
+
+    s = np.zeros(free.size * 3)
+    for _ in range(6):
+        jac = np.asarray(jax.jacfwd(residual)(jnp.asarray(s)))
+        s = s - np.linalg.lstsq(jac, np.asarray(residual(jnp.asarray(s))), rcond=None)[0]
+    dense = float(np.sum(np.asarray(residual(jnp.asarray(s))) ** 2))
+    before = float(np.sum(np.asarray(residual(jnp.zeros(free.size * 3))) ** 2))
+    return dense, before
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", ["native", "jax"])
-def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(noisy_small_jelly, backend):
+def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(
+    noisy_small_jelly, dense_segment_fit, backend
+):
     """One segment's residual sum of squares with its start positions fitted, solved without
     a Jacobian (central differences and reverse passes, conjugate gradients) on either
     backend, against Gauss-Newton with the dense forward-mode Jacobian solved by NumPy's
-    least squares, iterated to convergence."""
-    from jaxspring.fit.position_shooting import _recorded_segments, _segment_misfit, _start_fitted_squares
+    least squares, iterated to convergence (`dense_segment_fit`)."""
+    from jaxspring.fit.position_shooting import _recorded_segments, _start_fitted_squares
 
     scene, obs, truth = noisy_small_jelly
     scene = scene.with_backend(backend)
@@ -71,19 +99,7 @@ def test_a_segment_with_its_starts_fitted_matches_a_dense_least_squares_fit(nois
     params = model.params_with(scene.params, {n: jnp.asarray(v) for n, v in truth.items()})
     particles, free = jnp.asarray(obs.particles), jnp.asarray(seg.free)
     fast = float(_start_fitted_squares(model, params, particles, free, data, frames=10, every=obs.save_every))
-
-    forward = model.forward_mode()
-    dense_params = forward.params_with(scene.params, {n: jnp.asarray(v) for n, v in truth.items()})
-
-    def residual(s):
-        return _segment_misfit(forward, dense_params, particles, free, s, data, 10, obs.save_every)
-
-    s = np.zeros(free.size * 3)
-    for _ in range(6):
-        jac = np.asarray(jax.jacfwd(residual)(jnp.asarray(s)))
-        s = s - np.linalg.lstsq(jac, np.asarray(residual(jnp.asarray(s))), rcond=None)[0]
-    dense = float(np.sum(np.asarray(residual(jnp.asarray(s))) ** 2))
-    before = float(np.sum(np.asarray(residual(jnp.zeros(free.size * 3))) ** 2))
+    dense, before = dense_segment_fit
     assert dense < 0.9 * before  # the starts' noise was there to remove
     assert fast == pytest.approx(dense, rel=1e-6), (fast, dense, before)
 

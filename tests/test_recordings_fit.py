@@ -193,13 +193,19 @@ def test_the_start_and_driven_path_loss_gradient_matches_finite_differences(rope
         np.testing.assert_allclose(grad[key][index], (up - down) / (2 * h), rtol=1e-5)
 
 
-def test_noisy_driven_markers_are_told_apart_from_smooth_ones(rope):
+@pytest.fixture(scope="module")
+def takes_with_noisy_ends(rope):
+    """Two 100-frame takes with 1 mm noise on every marker, and the same takes without noise (seed 2)."""
+    return make_recordings(rope, 2, 100, noise=1e-3, seed=2), make_recordings(rope, 2, 100, noise=0.0, seed=2)
+
+
+def test_noisy_driven_markers_are_told_apart_from_smooth_ones(rope, takes_with_noisy_ends):
     """The driven markers' noise from fourth differences: ~1 mm on 1 mm noisy paths, ~0 on exact
     ones (smooth paths at 100 Hz); the report warns only of the noisy ones."""
     from jaxspring.fit.identifiability import Identifiability
     from jaxspring.fit.recordings import driven_noise, warn_of_noisy_driven_paths
 
-    noisy, clean = make_recordings(rope, 2, 100, noise=1e-3, seed=2), make_recordings(rope, 2, 100, noise=0.0, seed=2)
+    noisy, clean = takes_with_noisy_ends
     noisy_target = js.recording_target(rope, noisy, driven=[0, N - 1])
     exact_target = js.recording_target(rope, with_exact_ends(noisy, clean), driven=[0, N - 1])
     assert 0.8e-3 < driven_noise(noisy_target) < 1.2e-3
@@ -210,14 +216,14 @@ def test_noisy_driven_markers_are_told_apart_from_smooth_ones(rope):
 
 
 @pytest.mark.slow
-def test_fitted_driven_paths_take_the_driven_markers_noise_out_of_the_parameters(rope):
+def test_fitted_driven_paths_take_the_driven_markers_noise_out_of_the_parameters(rope, takes_with_noisy_ends):
     """1 mm noise on every marker, the driven ones too. Held as recorded, the noisy paths push
     the rope and the values are fitted to explain it (10 noise seeds: kd 7-31% off under
     standard errors of 1-2%; the report warns, test above). With the paths fitted (`fit_driven`), every
     value is within 3 of its standard errors, which now count the paths' uncertainty, and
     the fitted paths are nearer the true ones than the recorded markers (a little: the rope
     responds to a few of the paths' components; the others stay as recorded)."""
-    noisy, clean = make_recordings(rope, 2, 100, noise=1e-3, seed=2), make_recordings(rope, 2, 100, noise=0.0, seed=2)
+    noisy, clean = takes_with_noisy_ends
     init = {"ks.stretch": 250.0, "kd.stretch": 0.5, "cd": 0.02}
     target = js.recording_target(rope, noisy, driven=[0, N - 1], start=1, smooth=5, fit_driven=True)
     # starts=1: no start search (tests/test_search.py tests it); the fit ends where it does with it
@@ -339,9 +345,9 @@ def test_a_driven_marker_lost_at_the_start_is_named(rope):
 
 
 @pytest.mark.slow
-def test_the_ensemble_strategy_fits_recordings():
+def test_the_ensemble_strategy_fits_recordings(noise_free):
     """Noise-free recordings, damping known: the smoothed Gauss-Newton stage finds stiffness and drag."""
-    scene, target = _noise_free()
+    scene, target = noise_free
     init = {"ks.stretch": 280.0, "cd": 0.03}
     result = js.fit(scene, target, ["ks.stretch", "cd"], init, ensemble="ensemble", starts=1)  # no start search
     assert result.stages[0].kind == "ensemble"
@@ -351,11 +357,11 @@ def test_the_ensemble_strategy_fits_recordings():
 
 
 @pytest.mark.slow
-def test_shooting_segments_start_from_the_recordings():
+def test_shooting_segments_start_from_the_recordings(noise_free):
     """The shooting loss on noise-free recordings: small at the truth (not zero: the segments
     start from states estimated from 10 ms frames), larger 25% away on either side, and its
     gradient matches finite differences."""
-    scene, target = _noise_free()
+    scene, target = noise_free
     stages = plan_stages(target, FitSettings(strategy="shooting", segment_frames=15), scene)
     assert [s.kind for s in stages] == ["shooting", "direct"] and stages[0].frames == 15
     loss = jax.jit(loss_function(scene, target, ["ks.stretch", "cd"], stages[0]))
@@ -370,7 +376,9 @@ def test_shooting_segments_start_from_the_recordings():
     np.testing.assert_allclose(grad, fd, rtol=1e-5)
 
 
-def _noise_free():
+@pytest.fixture(scope="module")
+def noise_free():
+    """The rope with its true damping, and a target of two noise-free 45-frame takes."""
     physics = dict(ROPE["physics"], kd={"stretch": 1.0, "bend": 0.05})
     scene = js.scene_from_dict(dict(ROPE, physics=physics))
     return scene, js.recording_target(scene, make_recordings(scene, 2, 45, noise=0.0), driven=[0, N - 1], smooth=5)

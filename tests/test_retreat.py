@@ -69,42 +69,53 @@ def chain_target():
     return scene, js.synthetic_observations(scene, {"ks": 200.0, "kd": 0.2}, 150, 10)
 
 
-@pytest.mark.slow
-def test_fit_goes_on_from_softer_values_after_an_early_stop(chain_target, monkeypatch):
+# A step tolerance no step can beat stops the stage after two iterations from 1.6x the truth.
+# Both tests below judge this one fit (the second as the uninterrupted reference): run once.
+STOPPING = dict(strategy="direct", step_tolerance=1e9, iterations=12, polish=False, identify=False)
+START = {"ks": 320.0, "kd": 0.32}
+
+
+@pytest.fixture(scope="module")
+def retreating_fit(chain_target):
+    """The fit with retreats, and the ks it stood at after each iteration."""
+    scene, target = chain_target
+    stops = []
+    result = js.fit_batch(
+        scene,
+        [target],
+        ["ks", "kd"],
+        [START],
+        on_iteration=lambda p, _: stops.append(np.exp(float(p.theta["ks"][0]))),
+        **STOPPING,
+    )[0]
+    return result, stops
+
+
+def test_fit_goes_on_from_softer_values_after_an_early_stop(chain_target, retreating_fit, monkeypatch):
     """A step tolerance no step can beat stops the stage after two iterations from 1.6x the
     truth; the retreat restarts it from exactly 0.97x or 0.9x the point it stopped at, and
     the fit ends lower than the same fit without retreats."""
     scene, target = chain_target
-    init = {"ks": 320.0, "kd": 0.32}
-    kwargs = dict(strategy="direct", step_tolerance=1e9, iterations=12, polish=False)
-    stops = []
-    result = js.fit(
-        scene,
-        target,
-        ["ks", "kd"],
-        init=init,
-        on_iteration=lambda p, _: stops.append(np.exp(float(p.theta["ks"][0]))),
-        **kwargs,
-    )
+    result, stops = retreating_fit
     assert result.retreats, result.table()
     assert "went on from softer values" in result.table()
     for i in result.retreats:
         ratio = result.value_history["ks"][i] / stops[i - 1]
         assert min(abs(ratio - f) for f in RETREAT_FACTORS) < 1e-9, ratio
     monkeypatch.setattr(loop, "RETREATS", 0)
-    plain = js.fit(scene, target, ["ks", "kd"], init=init, **kwargs)
+    plain = js.fit(scene, target, ["ks", "kd"], init=START, **STOPPING)
     assert not plain.retreats and plain.iterations == 2
     assert result.final_loss < plain.final_loss
 
 
-def test_a_fit_resumed_after_a_retreat_goes_on_as_an_uninterrupted_one(chain_target, tmp_path):
+def test_a_fit_resumed_after_a_retreat_goes_on_as_an_uninterrupted_one(chain_target, retreating_fit, tmp_path):
     """Interrupted two iterations after its retreat, saved to a fit file and resumed from it, the fit
     repeats the uninterrupted one's iterations and retreats exactly (the stage's retreats
     are counted from the file, not started again)."""
     scene, target = chain_target
-    args = (scene, [target], ["ks", "kd"], [{"ks": 320.0, "kd": 0.32}])
-    options = dict(strategy="direct", step_tolerance=1e9, iterations=12, polish=False, identify=False)
-    whole = js.fit_batch(*args, **options)[0]
+    args = (scene, [target], ["ks", "kd"], [START])
+    options = STOPPING
+    whole = retreating_fit[0]  # the same fit, run through without a stop
     assert whole.retreats
 
     class Stop(Exception):

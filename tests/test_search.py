@@ -82,7 +82,8 @@ def test_fits_from_ten_times_off_end_at_the_truth(rope, recordings, factor):
     (omega_max dt = 4.6 > 2 at ks 40000: the search draws its starts again 10x lower)."""
     target = js.recording_target(rope, recordings, driven=[0], start=2, smooth=3)
     init = {n: factor * v for n, v in TRUTH.items()}
-    result = js.fit(rope, target, list(TRUTH), init=init, iterations=60)
+    # judged on its answer and its search alone: no identifiability report needed
+    result = js.fit(rope, target, list(TRUTH), init=init, iterations=60, identify=False)
     search = result.search
     assert search is not None and len(search.starts) == 8 and search.window == 10 and search.lengthened == 20
     assert (search.lowered > 0) == (factor == 100.0)
