@@ -29,7 +29,8 @@ import numpy as np  # noqa: E402
 import jaxspring as js  # noqa: E402
 from jaxspring.fit.horizon import NONLINEARITY_LIMIT, smooth_horizon  # noqa: E402
 from jaxspring.fit.objective import loss_function, target_data  # noqa: E402
-from jaxspring.fit.settings import Stage, over_horizon  # noqa: E402
+from jaxspring.fit.plan import over_horizon  # noqa: E402
+from jaxspring.fit.settings import Stage  # noqa: E402
 
 ROOT = Path(__file__).parents[1]
 TRUTH = {"ks": 250.0, "kd": 0.05}

@@ -12,7 +12,7 @@ Example:
     >>> traj = js.rollout(scene.model, scene.params, scene.state, steps=2000, save_every=10)
 """
 
-import importlib
+import importlib as _importlib
 import warnings as _warnings
 
 from . import fitting, io, sim
@@ -92,5 +92,5 @@ def __getattr__(name: str):
         return getattr(globals()[where], name)
     if name in _INTERNAL:
         _warnings.warn(f"js.{name} is internal now: {_INTERNAL[name]}.{name}", DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(_INTERNAL[name]), name)
+        return getattr(_importlib.import_module(_INTERNAL[name]), name)
     raise AttributeError(f"module 'jaxspring' has no attribute {name!r}")

@@ -332,7 +332,7 @@ def test_long_horizon_strategies(strategy):
 def test_auto_strategy_choice(scenes):
     chain, jelly = scenes["chain"], scenes["jelly"]
     settings = js.FitSettings()
-    from jaxspring.fit.settings import plan_stages
+    from jaxspring.fit.plan import plan_stages
 
     assert [s.kind for s in plan_stages(js.synthetic_observations(chain, {}, 500, 10), settings, chain)] == ["direct"]
     long = js.synthetic_observations(chain, {}, 3000, 30)

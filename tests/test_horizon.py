@@ -15,10 +15,11 @@ import pytest
 
 import jaxspring as js
 from jaxspring.cli import main
-from jaxspring.fit.horizon import horizon_stage, round_off_loss, smooth_horizon
+from jaxspring.fit.horizon import round_off_loss, smooth_horizon
 from jaxspring.fit.objective import loss_function, target_data
+from jaxspring.fit.plan import horizon_stage, needs_horizon, over_horizon
 from jaxspring.fit.progress import FitProgress
-from jaxspring.fit.settings import Stage, needs_horizon, over_horizon
+from jaxspring.fit.settings import Stage
 from jaxspring.io.fit_file import load_fit_progress, save_fit
 
 jax.config.update("jax_enable_x64", True)
@@ -208,25 +209,25 @@ def test_an_ensemble_stage_that_fits_to_round_off_stops(scenes):
     """Without noise the ensemble stage would shrink its cloud towards standard errors of
     zero for all its iterations; a loss at round-off ends it. A gradient stage there goes on
     to its own stopping rules (L-BFGS reaches far below that floor in float32)."""
-    loop = importlib.import_module("jaxspring.fit.loop")
+    stop_rules = importlib.import_module("jaxspring.fit.gradient").converged
     obs = js.synthetic_observations(scenes["chain"], CHAIN_TRUTH, steps=100, save_every=10)
     floor = round_off_loss(scenes["chain"], obs)
     size = np.abs(obs.x).max()  # the chain reaches 19 m from its pin
     assert floor == pytest.approx((64 * np.finfo(np.float64).eps * size) ** 2)
     progress = FitProgress(1, 2, {}, None, [np.array([1.0]), np.array([floor / 2])], {}, [1, 1])
     ensemble = {"done": np.zeros(1)}  # an ensemble stage that has not finished
-    assert loop._converged(progress, js.FitSettings(), True, ensemble, floor)
+    assert stop_rules(progress, js.FitSettings(), True, ensemble, floor)
     progress.loss[-1] = np.array([floor * 2])
-    assert not loop._converged(progress, js.FitSettings(), True, ensemble, floor)
+    assert not stop_rules(progress, js.FitSettings(), True, ensemble, floor)
     progress.stage = 2  # a new stage: the last stage's loss does not count
     progress.loss[-1] = np.array([floor / 2])
-    assert not loop._converged(progress, js.FitSettings(), True, ensemble, floor)
+    assert not stop_rules(progress, js.FitSettings(), True, ensemble, floor)
     gradient = {"lbfgs": np.zeros(1)}  # a gradient stage's optimizer state
     progress.stage = 1
     progress.loss = [np.array([floor]), np.array([floor / 2])]  # still falling fast
-    assert not loop._converged(progress, js.FitSettings(), True, gradient, floor)
+    assert not stop_rules(progress, js.FitSettings(), True, gradient, floor)
     progress.last_step = np.array([1e-10])  # no value moved over its last two iterations
-    assert loop._converged(progress, js.FitSettings(), True, gradient, floor)
+    assert stop_rules(progress, js.FitSettings(), True, gradient, floor)
 
 
 @pytest.mark.slow

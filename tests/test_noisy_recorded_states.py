@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import jaxspring as js
+from jaxspring.fit.plan import plan_stages
 from jaxspring.fit.position_shooting import start_fitted_noise
 from jaxspring.fit.progress import FitProgress
-from jaxspring.fit.settings import plan_stages
 from jaxspring.io.fit_file import load_fit_progress, save_fit
 
 jax.config.update("jax_enable_x64", True)

@@ -9,8 +9,9 @@ import pytest
 
 import jaxspring as js
 from jaxspring.cli import main
+from jaxspring.fit.plan import plan_stages
 from jaxspring.fit.recording_loss import loss_function, target_data
-from jaxspring.fit.settings import FitSettings, Stage, plan_stages
+from jaxspring.fit.settings import FitSettings, Stage
 
 N = 6
 ROPE = {

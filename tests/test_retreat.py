@@ -14,7 +14,7 @@ from jaxspring.fit.gradient import RETREAT_FACTORS, RETREAT_GAIN, retreat
 from jaxspring.fit.progress import FitProgress
 from jaxspring.io.fit_file import load_fit_progress, save_fit
 
-loop = importlib.import_module("jaxspring.fit.loop")  # the package's `fit` names the function
+stages = importlib.import_module("jaxspring.fit.stages")
 
 
 def test_retreat_picks_the_lowest_softer_point_per_member():
@@ -102,7 +102,7 @@ def test_fit_goes_on_from_softer_values_after_an_early_stop(chain_target, retrea
     for i in result.retreats:
         ratio = result.value_history["ks"][i] / stops[i - 1]
         assert min(abs(ratio - f) for f in RETREAT_FACTORS) < 1e-9, ratio
-    monkeypatch.setattr(loop, "RETREATS", 0)
+    monkeypatch.setattr(stages, "RETREATS", 0)
     plain = js.fit(scene, target, ["ks", "kd"], init=START, **STOPPING)
     assert not plain.retreats and plain.iterations == 2
     assert result.final_loss < plain.final_loss

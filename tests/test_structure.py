@@ -98,3 +98,17 @@ def test_no_import_circle_inside_the_package():
 def test_no_module_over_400_lines(name):
     lines = len(_modules()[name].read_text().splitlines())
     assert lines <= MAX_LINES, f"{name}: {lines} lines"
+
+
+def test_the_fit_loop_is_short_and_every_stage_speaks_one_protocol():
+    """`fit_batch` (setup, the loop over the plan's stages) is straight-line code of at most
+    150 lines, and every stage object `stage_for` can return has the four methods of the
+    stage protocol and says whether a checkpoint after its steps resumes exactly."""
+    tree = ast.parse((PACKAGE / "fit" / "loop.py").read_text())
+    (fit_batch,) = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "fit_batch"]
+    assert fit_batch.end_lineno - fit_batch.lineno + 1 <= 150
+    from jaxspring.fit import stages
+
+    for runner in (stages.OptimiserStage, stages.Retreat, stages.SegmentStates):
+        assert all(callable(getattr(runner, m, None)) for m in ("init", "step", "done", "result")), runner
+        assert isinstance(runner.checkpoints, bool)

@@ -108,3 +108,22 @@ def test_custom_topology_round_trip(tmp_path):
     np.testing.assert_array_equal(np.asarray(loaded.params.ks), [100.0, 200.0, 300.0])
     np.testing.assert_array_equal(np.asarray(loaded.model.drag), [False, True, True, True])
     assert jnp.all(again.x == traj.x)
+
+
+def test_a_fit_file_keeps_the_plan_its_transitions_left(tmp_path):
+    """A checkpoint keeps the stages as they stand (here a final stage cut to segments and a
+    refit added, as the fit's transitions leave them), and `--resume` reads back exactly those."""
+    from jaxspring.fit.progress import FitProgress
+    from jaxspring.fit.settings import Stage
+    from jaxspring.io.fit_file import load_fit_progress, save_fit
+
+    plan = [Stage("shooting", 10), Stage("ensemble", 50, 0.1), Stage("position_shooting", 10)]
+    progress = FitProgress(1, 0, {"ks": np.zeros(1)}, None, [], {"ks": []}, [], horizon=62, refit_frames=10)
+    progress.plan = plan
+    save_fit(tmp_path / "f.h5", {"a": 1}, ["ks"], {"ks": np.float64(1.0)}, progress)
+    back = load_fit_progress(tmp_path / "f.h5", {"a": 1}, ["ks"])
+    assert back.plan == plan and isinstance(back.plan[0], Stage)
+    assert (back.horizon, back.refit_frames) == (62, 10)
+    progress.plan = None  # a progress made by hand has none: the fit plans its stages itself
+    save_fit(tmp_path / "g.h5", {"a": 1}, ["ks"], {"ks": np.float64(1.0)}, progress)
+    assert load_fit_progress(tmp_path / "g.h5", {"a": 1}, ["ks"]).plan is None

@@ -10,11 +10,15 @@ fitted (`shooting`). Where contact makes the loss rough, a whole-horizon last st
 an ensemble Gauss-Newton on the loss smoothed at the scale of the parameters' own
 uncertainty (see `FitSettings.ensemble`).
 
-Modules: `settings` (FitSettings, the plan of stages), `objective` (the misfit),
-`horizon` (how long the misfit stays smooth), `loop` (fit, fit_batch), `ensemble` (the
-ensemble stage), `least_squares` (Levenberg-Marquardt: the shooting stage's finish),
-`identifiability` (Gauss-Newton polish, standard errors), `results`,
-`observations`, `shooting` and `block_lm` (free multiple shooting).
+Modules: `loop` (fit, fit_batch: the plan's stages run one after the other), `plan` (the
+stages a fit runs and the two transitions that change them), `stages` (the stage protocol and
+the stage objects), `progress` (where a running fit stands), `settings` (FitSettings, Stage),
+`results` (FitResult, and the results of a finished fit). The stages' pieces: `gradient`
+(optimiser steps, stop rules, retreat), `least_squares` (Levenberg-Marquardt), `ensemble`,
+`shooting`, `position_shooting` and `block_lm` (segments with fitted start states),
+`horizon` (how long the misfit stays smooth), `search` (the start search). Targets and their
+misfit: `observations`, `recordings`, `objective`, `recording_loss`. `identifiability`
+(polish, standard errors), `predict`.
 """
 
 from .horizon import Horizon, smooth_horizon

@@ -30,8 +30,6 @@ from ..sim.rollout import rollout
 from ..sim.scene import Scene
 from ..sim.state import State
 from .observations import Observations
-from .settings import FitSettings, Stage, over_horizon
-from .shooting import touching
 
 NONLINEARITY_LIMIT = 0.5
 """Largest nonlinearity (the module's docstring) at which a stretch still counts as smooth:
@@ -224,27 +222,3 @@ def measure_horizon(scene: Scene, observations: list, names, spread: float, thet
         target = observations[member if len(observations) > 1 else 0]
         frames.append(smooth_horizon(scene, target, names, values, spread=spread).frames)
     return min(frames)
-
-
-def horizon_stage(scene: Scene, observations: list, names, settings: FitSettings, stage: Stage, horizon: int) -> Stage:
-    """A plan's final `stage` fitted to a measured `horizon` [frames] (`over_horizon`) for
-    these targets. Free shooting (from positions alone) only where it can do as well: every
-    free particle observed (else each segment's unseen states would be fitted from far fewer
-    data than the whole horizon's known start determines them) and every target with a
-    segment clear of the ground (else there is nothing to fit); where not, the whole
-    horizon, which the report then calls not smooth.
-
-    Example:
-        >>> horizon_stage(scene, [obs], ["ks"], js.FitSettings(), Stage("ensemble", 250), 62)
-    """
-    final = over_horizon(stage, horizon, observations[0].full, settings.segment_frames)
-    if final is stage and stage.kind == "ensemble" and horizon >= stage.frames:
-        # the misfit was measured smooth at the horizon's spread: a wider cloud would only
-        # average over motions the answer is already known not to have
-        return dataclasses.replace(stage, spread=min(settings.horizon_spread, settings.ensemble_spread))
-    if final.kind == "free_shooting":
-        free = np.nonzero(~np.asarray(scene.model.pinned))[0]
-        seen = all(np.isin(free, o.particles).all() for o in observations)
-        if not seen or any(touching(scene, o, final.frames, names).all() for o in observations):
-            return stage
-    return final

@@ -28,10 +28,12 @@ class FitProgress:
             (`fit.horizon`; None before, or when the plan does not ask).
         refit_frames: segment frames of a "position_shooting" stage added after the plan's last
             one, whose answer left more misfit than the recorded positions' noise, or in place
-            of a last one of longer segments from them (`noisy_states.refit_from`,
+            of a last one of longer segments from them (`fit.plan.refit_from`,
             `refit_stages`); None when none was added.
         retreats: (iteration, members moved (B,) bool) for each time a stage that stopped early
             went on from softer values (`fit.gradient.retreat`); the iteration indexes `loss`.
+        plan: the fit's stages (`fit.plan`), as its transitions left them; saved in fit files,
+            so a resumed fit runs the same stages.
     """
 
     stage: int
@@ -47,3 +49,12 @@ class FitProgress:
     horizon: int | None = None
     refit_frames: int | None = None
     retreats: list = dataclasses.field(default_factory=list)
+    plan: list | None = None
+
+    def next_stage(self) -> None:
+        """Leave the current stage: the next one starts with a fresh optimizer."""
+        self.stage += 1
+        self.iteration = 0
+        self.optimizer_leaves = None
+        self.last_step = None
+        self.done = self.stage >= len(self.plan)

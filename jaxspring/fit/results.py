@@ -1,12 +1,25 @@
-"""What a fit returns: the result of one member, with its identifiability report."""
+"""What a fit returns: the result of one member, with its identifiability report, and how a
+finished fit's progress becomes those results (`collect_results`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import time
 
+import jax.numpy as jnp
 import numpy as np
 
-from .identifiability import Identifiability
+from .gradient import best_of_stages, step_function
+from .horizon import describe_segments, describe_smoothness
+from .identifiability import Identifiability, gauss_newton_polish, identifiability_report, start_polish
+from .objective import loss_function
+from .plan import why_refit
+from .position_shooting import describe, segment_fitter
+from .progress import FitProgress
+from .recording_loss import NUISANCE, estimated_inputs, with_fitted_start
+from .recordings import RecordingTarget, warn_of_noisy_driven_paths
+from .settings import SEGMENT_STATES, Stage
+from .stages import FitRun
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,3 +127,108 @@ def _short(value) -> str:
     if value.ndim == 0:
         return f"{float(value):.6g}"
     return f"mean {float(value.mean()):.4g}"
+
+
+def collect_results(run: FitRun, progress: FitProgress, start_values: list, identify: bool, segment_fits) -> list:
+    """A `FitResult` per member of a finished fit: the best point of its plan on the final
+    objective (`gradient.best_of_stages`; segment-state stages: their fits, settled again
+    when resumed after them), the polish (`FitSettings.polish`, fitted start states always),
+    and the identifiability report of the objective the final stage minimised."""
+    scene, observations, names, settings, data = run.scene, run.observations, run.names, run.settings, run.data
+    stages, batched_data = progress.plan, run.batched_data
+    if stages[-1].kind in SEGMENT_STATES:  # downhill on each continuity weight's objective, ending on the last
+        if segment_fits is None:  # resumed after the stage: settle the states at the answer again
+            fit_of = segment_fitter(stages[-1].kind)
+            segment_fits = [
+                fit_of(
+                    scene,
+                    observations[m if batched_data else 0],
+                    names,
+                    {n: np.exp(np.asarray(progress.theta[n][m], dtype=float)) for n in names},
+                    stages[-1].frames,
+                    settings.iterations,
+                    settings.step_tolerance,
+                )
+                for m in range(len(start_values))
+            ]
+            progress.theta = {n: jnp.stack([jnp.log(jnp.asarray(f.values[n])) for f in segment_fits]) for n in names}
+        final_loss = np.array([f.loss for f in segment_fits])
+    else:
+        loss = loss_function(scene, observations[0], names, stages[-1])
+        _, _, value = step_function(loss, settings, batched_data)
+        progress.theta, final_loss = best_of_stages(progress, names, value, data)
+    results = []
+    total = observations[0].frame_count - 1
+    segment = stages[-1].frames if stages[-1].kind == "shooting" else None  # the final misfit over segments
+    polish_stage = Stage("gauss_newton", segment or total)
+    horizon_objective, horizon_words = {}, ""
+    if progress.horizon is not None:  # the final stage was fitted to the horizon measured after the others
+        horizon_words = describe_smoothness(progress.horizon, total, settings.horizon_spread)
+        horizon_objective = dict(
+            segment=segment,
+            objective=describe_segments(segment, total, progress.horizon, settings.horizon_spread),
+        )
+    for member, start in enumerate(start_values):
+        obs = observations[member if batched_data else 0]
+        final = {n: np.asarray(jnp.exp(progress.theta[n][member])) for n in names}
+        history = [np.asarray(loss)[member] for loss in progress.loss]
+        value_history = {n: [v[member] for v in progress.values[n]] for n in names}
+        stage_of_iteration = list(progress.stage_of_iteration)
+        polish_start = time.perf_counter()
+        estimated = None
+        if "start" in progress.theta:  # fitted start states: always polished with them (least squares)
+            nuisance = {k: np.asarray(progress.theta[k][member]) for k in NUISANCE if k in progress.theta}
+            steps = start_polish(scene, obs, names, final, nuisance, settings) if obs.loss == "mse" else []
+            obs = with_fitted_start(obs, steps.nuisance if steps else nuisance)  # reported with them held
+            estimated = estimated_inputs(obs, "driven" in nuisance)
+        else:
+            whole = settings.polish and stages[-1].kind not in SEGMENT_STATES  # never past the segments
+            steps = gauss_newton_polish(scene, obs, names, final, settings, segment=segment) if whole else []
+        for loss_before, values_before in steps:
+            history.append(loss_before)
+            for n in names:
+                value_history[n].append(values_before[n])
+            stage_of_iteration.append(len(stages))
+        if steps:
+            final = steps.final
+            final_loss_member = steps.final_loss
+        else:
+            final_loss_member = final_loss[member]
+        reduced = getattr(steps, "reduced", None)  # start states estimated too: their uncertainty counts
+        shooting = {"normal": reduced, "nuisance": steps.unknowns if reduced is not None else 0, **horizon_objective}
+        if segment_fits is not None and stages[-1].kind in SEGMENT_STATES:  # standard errors of that objective
+            fit = segment_fits[member]
+            dof = max(fit.count + fit.link_rows - len(fit.reduced) - fit.unknowns, 1)
+            shooting = dict(
+                normal=fit.reduced,
+                nuisance=fit.unknowns,
+                noise_variance=fit.loss * fit.count / dof,
+                objective=describe(fit) + why_refit(stages, progress, horizon_words),
+            )
+            estimated = {
+                "segment_x": np.asarray(fit.starts.x),
+                "segment_v": np.asarray(fit.starts.v),
+                "segment_frame": np.asarray(fit.first_frames),
+            }
+        ident = identifiability_report(scene, obs, names, final, **shooting) if identify else None
+        if ident and isinstance(obs, RecordingTarget) and not (estimated and "driven" in estimated):
+            ident = warn_of_noisy_driven_paths(obs, ident)
+        results.append(
+            FitResult(
+                names=names,
+                initial={n: np.asarray(start[n]) for n in names},
+                final=final,
+                loss_history=np.array(history + [final_loss_member]),
+                value_history={n: np.array(value_history[n] + [final[n]]) for n in names},
+                stages=tuple(stages) + ((polish_stage,) if steps else ()),
+                stage_of_iteration=np.asarray(stage_of_iteration, dtype=int),
+                iterations=len(history),
+                wall_s=progress.wall_s + time.perf_counter() - polish_start,
+                identifiability=ident,
+                truth={n: obs.truth[n] for n in names if n in obs.truth} if obs.truth else None,
+                truth_label=getattr(obs, "truth_label", "true"),
+                estimated=estimated,
+                retreats=tuple(i for i, moved in progress.retreats if moved[member]),
+            )
+        )
+    return results

@@ -5,12 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numpy as np
-
 from ..errors import InputError
 from ..sim.params import NON_NEGATIVE
-from ..sim.scene import Scene
-from .observations import Observations
 
 FITTABLE = NON_NEGATIVE  # ks, kd, cd, kg, kgd: positive, fitted in log space
 OPTIMIZERS = ("auto", "lbfgs", "lm", "adam")
@@ -46,7 +42,7 @@ class FitSettings:
             target touches the ground, shooting when full states were recorded, else
             curriculum. After shooting, when the recorded positions are noisy and the
             plan's answer leaves more misfit than their noise, it goes on to fit the
-            segments' start positions too ("position_shooting", `fit.noisy_states.refit_from`).
+            segments' start positions too ("position_shooting", `fit.plan.refit_from`).
         segment_frames: frames per multiple-shooting segment.
         long_horizon_steps: targets longer than this count as long.
         tolerance: a stage stops when the loss falls below `tolerance**2` times its first value
@@ -159,121 +155,3 @@ class Stage:
     kind: str
     frames: int
     spread: float | None = None
-
-
-PLAN_VERSION = 4
-"""The rules by which a fit's stages are planned, added and ended (`plan_stages`,
-`horizon_stage`, `noisy_states.refit_stages`), numbered: a fit file keeps stage indices, so
-`--resume` refuses a file written under other rules. 2: "position_shooting" replaces a final
-stage of longer segments from noisy recorded states instead of following it. 3: a
-"shooting" stage on exact data ends with Levenberg-Marquardt steps
-(`least_squares.finish_segments`). 4: optimizer "auto" runs the whole-take stages of
-recordings with Levenberg-Marquardt (`least_squares.lm_step_function`)."""
-
-
-def plan_stages(
-    observations: Observations, settings: FitSettings, scene: Scene | None = None, values: int = 1
-) -> list[Stage]:
-    """The stages a fit of `values` scalar parameter values runs through (see FitSettings.strategy, .ensemble)."""
-    total = observations.frame_count - 1
-    strategy = settings.strategy
-    rough = _touches_ground(scene, observations)
-    if strategy == "auto":
-        if getattr(observations, "shootable", False):
-            # recordings: driven, damped motion from estimated start states; short segments
-            # from noisy states bias the fit and a curriculum's early stages crawl along
-            # what the data do not determine (measured on rope recordings), so fit the whole take
-            strategy = "direct"
-        elif observations.steps <= settings.long_horizon_steps and not rough:
-            strategy = "direct"
-        else:
-            strategy = "shooting" if observations.full else "curriculum"
-    if strategy == "shooting" and not _shootable(observations):
-        raise InputError(
-            "strategy",
-            "multiple shooting from recorded states needs full recorded states of every particle",
-            "use free_shooting (fits the segments' states from positions) or curriculum",
-        )
-    if strategy == "free_shooting":
-        if getattr(observations, "shootable", False):
-            raise InputError(
-                "strategy", "free_shooting fits target files, not recordings", 'fit recordings with "direct"'
-            )
-        return [Stage("free_shooting", min(settings.segment_frames, total))]
-    if strategy == "position_shooting":  # shooting brings the values near, then the starts' positions are fitted
-        if not observations.full:
-            raise InputError(
-                "strategy",
-                "position_shooting starts from recorded states and needs them for every particle",
-                "use free_shooting (fits the segments' states from positions)",
-            )
-        frames = min(settings.segment_frames, total)
-        return [Stage("shooting", frames), Stage("position_shooting", frames)]
-    if strategy == "shooting":  # from recorded states
-        stages = [Stage("shooting", min(settings.segment_frames, total)), Stage("direct", total)]
-    elif strategy == "curriculum":
-        horizons = sorted({max(2, min(total, math.ceil(total * f))) for f in (0.125, 0.25, 0.5, 1.0)})
-        stages = [Stage("direct", h) for h in horizons]
-    else:
-        stages = [Stage("direct", total)]
-    ensemble = settings.ensemble == "ensemble" or (
-        settings.ensemble == "auto" and rough and values <= ENSEMBLE_MAX_PARAMETERS
-    )
-    if ensemble:
-        if values > ENSEMBLE_MAX_PARAMETERS:
-            raise InputError(
-                "ensemble",
-                f"the ensemble stage takes at most {ENSEMBLE_MAX_PARAMETERS} parameter values, not {values}",
-                'fit scalar parameters, or set ensemble = "gradient"',
-            )
-        stages[-1] = Stage("ensemble", total)
-    return stages
-
-
-def needs_horizon(stages: list[Stage], observations: Observations) -> bool:
-    """Whether the plan's final stage is to be fitted to the horizon its misfit stays smooth
-    over (`over_horizon`): shorter stages came first (multiple shooting from recorded
-    states, or a curriculum's shorter horizons), and the final stage still spans the whole
-    target from its initial state. Not for recordings (driven, each from its own start
-    state): they are fitted over their whole takes.
-
-    Example:
-        >>> needs_horizon([Stage("shooting", 10), Stage("ensemble", 250)], observations)  # True
-    """
-    return (
-        not getattr(observations, "shootable", False)
-        and len(stages) > 1
-        and stages[0].kind in ("shooting", "direct")
-        and stages[-1].kind in ("direct", "ensemble")
-    )
-
-
-def over_horizon(stage: Stage, horizon: int, recorded: bool = True, segment_frames: int = 10) -> Stage:
-    """The final stage `stage` (over the whole target) when `horizon` frames cover the
-    target; else, with `recorded` states, multiple shooting from them with the longest equal
-    segments of at most `horizon` frames (the optimiser on a misfit smooth at the measured
-    scale; fewer trailing frames left out than there are segments), and from positions
-    alone multiple shooting with fitted segment states ("free_shooting", segments of
-    `segment_frames` frames, or `horizon` if shorter).
-
-    Example:
-        >>> over_horizon(Stage("ensemble", 250), 62)  # Stage("shooting", 50): 5 segments
-    """
-    total = stage.frames
-    if horizon >= total:
-        return stage
-    horizon = max(int(horizon), 1)
-    if recorded:
-        return Stage("shooting", total // math.ceil(total / horizon))
-    return Stage("free_shooting", min(int(segment_frames), horizon))
-
-
-def _shootable(observations) -> bool:
-    return bool(observations.full or getattr(observations, "shootable", False))
-
-
-def _touches_ground(scene: Scene | None, observations: Observations) -> bool:
-    """Whether the target reaches the ground plane (contact makes the loss landscape rough)."""
-    if scene is None or not scene.model.has("ground"):
-        return False
-    return bool(np.nanmin(observations.x[..., 1]) < float(scene.params.ground_height))

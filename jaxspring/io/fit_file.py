@@ -11,10 +11,11 @@ import numpy as np
 
 from ..errors import FileFormatError, InputError
 from ..fit.identifiability import Identifiability, unique_names
+from ..fit.plan import PLAN_VERSION
 from ..fit.progress import FitProgress
 from ..fit.recording_loss import NUISANCE
 from ..fit.results import FitResult
-from ..fit.settings import PLAN_VERSION
+from ..fit.settings import Stage
 from .trajectory import atomic_path, open_hdf5
 
 FIT_FORMAT = "jaxspring.fit"
@@ -71,6 +72,8 @@ def save_fit(
             optimizer.attrs["horizon"] = int(progress.horizon)
         if progress.refit_frames is not None:
             optimizer.attrs["refit_frames"] = int(progress.refit_frames)
+        if progress.plan is not None:  # the stages as the fit's transitions left them
+            optimizer.attrs["plan"] = json.dumps([[s.kind, int(s.frames), s.spread] for s in progress.plan])
         retreats = [int(i) for i, moved in progress.retreats if np.asarray(moved)[0]]  # the file's member's
         if retreats:
             optimizer.attrs["retreats"] = retreats
@@ -148,6 +151,7 @@ def load_fit_progress(path, config: dict, names) -> FitProgress:
             horizon=int(optimizer.attrs["horizon"]) if "horizon" in optimizer.attrs else None,
             refit_frames=int(optimizer.attrs["refit_frames"]) if "refit_frames" in optimizer.attrs else None,
             retreats=[(int(i), np.array([True])) for i in optimizer.attrs.get("retreats", [])],
+            plan=[Stage(*s) for s in json.loads(optimizer.attrs["plan"])] if "plan" in optimizer.attrs else None,
         )
 
 
