@@ -72,8 +72,9 @@ def fit_batch(
     `inits` one start per member (default: one member starting at the scene's values).
     Each stage's iteration is compiled up front and refused (InputError) when XLA's memory
     plan for it exceeds the memory available or `max_memory` bytes.
-    `progress` continues an interrupted fit; `on_iteration(progress, stages)` is called
-    after every iteration (the CLI checkpoints from it). With several devices in one process and a
+    `progress` continues an interrupted fit (its saved plan, `progress.plan`, is run);
+    `on_iteration(progress, stages)` is called after every iteration of a stage that resumes
+    exactly from there, and after every stage (the CLI checkpoints from it). With several devices in one process and a
     member count divisible by their number, the members are split across them
     (`shard_batch`); otherwise the recordings of a `RecordingTarget`, when their count
     divides by the devices' (each device simulates its share; the loss sums over all).
