@@ -221,18 +221,24 @@ def segment_fitter(kind: str):
     return fit_recorded_segments if kind == "position_shooting" else fit_segments
 
 
+def member_segment_fits(scene, observations, names, stage, settings, theta: dict) -> list[SegmentFit]:
+    """A segment-state stage's fit (`segment_fitter`) of every member from its log values in
+    `theta` (name -> (B, ...)); `observations` holds one target, or one per member."""
+    fit_of = segment_fitter(stage.kind)
+    fits = []
+    for m in range(int(np.shape(theta[names[0]])[0])):
+        target = observations[m if len(observations) > 1 else 0]
+        values = {n: np.exp(np.asarray(theta[n][m], dtype=float)) for n in names}
+        fits.append(fit_of(scene, target, names, values, stage.frames, settings.iterations, settings.step_tolerance))
+    return fits
+
+
 def free_shooting_stage(scene, observations, names, stage, settings, progress) -> list[SegmentFit]:
     """A plan's "free_shooting" stage (`fit_segments`) or "position_shooting" stage
     (`fit_recorded_segments`) for every member of `progress` from its current values; appends
     the accepted steps to the history and leaves the answers in `progress.theta`. Returns each
     member's SegmentFit."""
-    fit_of = segment_fitter(stage.kind)
-    members = int(np.shape(progress.theta[names[0]])[0])
-    fits = []
-    for m in range(members):
-        target = observations[m if len(observations) > 1 else 0]
-        values = {n: np.exp(np.asarray(progress.theta[n][m], dtype=float)) for n in names}
-        fits.append(fit_of(scene, target, names, values, stage.frames, settings.iterations, settings.step_tolerance))
+    fits = member_segment_fits(scene, observations, names, stage, settings, progress.theta)
     for i in range(max(len(f.history) for f in fits)):  # members that finished early repeat their answer
         entries = [f.history[i] if i < len(f.history) else (f.loss, f.values) for f in fits]
         progress.loss.append(np.array([loss for loss, _ in entries]))

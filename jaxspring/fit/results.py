@@ -14,7 +14,7 @@ from .horizon import describe_segments, describe_smoothness
 from .identifiability import Identifiability, gauss_newton_polish, identifiability_report, start_polish
 from .objective import loss_function
 from .plan import why_refit
-from .position_shooting import describe, segment_fitter
+from .position_shooting import describe, member_segment_fits
 from .progress import FitProgress
 from .recording_loss import NUISANCE, estimated_inputs, with_fitted_start
 from .recordings import RecordingTarget, warn_of_noisy_driven_paths
@@ -138,19 +138,7 @@ def collect_results(run: FitRun, progress: FitProgress, start_values: list, iden
     stages, batched_data = progress.plan, run.batched_data
     if stages[-1].kind in SEGMENT_STATES:  # downhill on each continuity weight's objective, ending on the last
         if segment_fits is None:  # resumed after the stage: settle the states at the answer again
-            fit_of = segment_fitter(stages[-1].kind)
-            segment_fits = [
-                fit_of(
-                    scene,
-                    observations[m if batched_data else 0],
-                    names,
-                    {n: np.exp(np.asarray(progress.theta[n][m], dtype=float)) for n in names},
-                    stages[-1].frames,
-                    settings.iterations,
-                    settings.step_tolerance,
-                )
-                for m in range(len(start_values))
-            ]
+            segment_fits = member_segment_fits(scene, observations, names, stages[-1], settings, progress.theta)
             progress.theta = {n: jnp.stack([jnp.log(jnp.asarray(f.values[n])) for f in segment_fits]) for n in names}
         final_loss = np.array([f.loss for f in segment_fits])
     else:
